@@ -1,0 +1,1 @@
+"""Scanning environments: the simulator core (``sim``) and its RLlib/PettingZoo adapters."""

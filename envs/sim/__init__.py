@@ -1,0 +1,1 @@
+"""The 3D scanning simulator core. Imports no RL library."""

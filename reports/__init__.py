@@ -1,0 +1,1 @@
+"""Ablation report generation lands here: issue #6."""

@@ -1,0 +1,16 @@
+"""Metric names, in one place: the env, callbacks, benchmarks and reports import them."""
+
+COVERAGE = "coverage"  # scanned cells / all cells at episode end (paper: scanning success rate)
+SUCCESS = "success"  # 1.0 if coverage >= SUCCESS_COVERAGE else 0.0
+SUCCESS_COVERAGE = 0.95
+STEPS_TO = {0.5: "steps_to_50", 0.8: "steps_to_80", 0.95: "steps_to_95"}  # NaN if not reached
+COLLISIONS = "collisions"  # all robots
+COLLISIONS_BY_KIND = {"wheeled": "collisions_wheeled", "quad": "collisions_quad"}
+RETURN_BY_KIND = {"wheeled": "return_wheeled", "quad": "return_quad"}  # mean over robots of a kind
+EPISODE_STEPS = "episode_steps"
+CELLS_SCANNED = "cells_scanned"
+CELLS_TOTAL = "cells_total"
+
+EPISODE_METRICS = (COVERAGE, SUCCESS, *STEPS_TO.values(), COLLISIONS,
+                   *COLLISIONS_BY_KIND.values(), *RETURN_BY_KIND.values(), EPISODE_STEPS,
+                   CELLS_SCANNED, CELLS_TOTAL)

@@ -1,0 +1,1 @@
+"""Tune launches and Optuna ablation studies land here: issue #6."""
