@@ -15,10 +15,9 @@ from typing import Any
 import numpy as np
 
 from rl_scan import metrics as M
-from rl_scan.config import ConfigError
 from rl_scan.envs.observations import action_spaces, kind_of, observation_spaces
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
-from rl_scan.envs.sim.robots import ACTION_SLOTS, KINDS
+from rl_scan.envs.sim.robots import KINDS
 from rl_scan.envs.sim.scenarios import load_scenario, parse_scenario_name
 from rl_scan.envs.sim.world import World
 
@@ -34,7 +33,8 @@ class ScanCore:
         self.observation_spaces = observation_spaces(self.config)
         self.action_spaces = action_spaces(self.config)
         self._dims = {aid: self.observation_spaces[aid].shape[0] for aid in self.agent_ids}
-        self._slots = [ACTION_SLOTS[kind_of(aid)] for aid in self.agent_ids]
+        self._index = {aid: i for i, aid in enumerate(self.agent_ids)}
+        self._action_shapes = [self.action_spaces[aid].shape for aid in self.agent_ids]
         self._kinds = np.array([kind_of(aid) for aid in self.agent_ids])
         self._worlds: OrderedDict[str, World] = OrderedDict()
         self._actions = np.zeros((len(self.agent_ids), 5))
@@ -66,10 +66,7 @@ class ScanCore:
         """Start an episode; ``options={'scenario': name}`` switches the scenario first."""
         if seed is not None:
             self.np_random = np.random.default_rng(seed)
-        options = dict(options or {})
-        scenario = options.pop("scenario", None)
-        if options:
-            raise ConfigError(f"unknown reset option {sorted(options)[0]!r}: allowed ['scenario']")
+        scenario = (options or {}).get("scenario")  # other options are ignored (gymnasium)
         if scenario is not None:
             self.set_scenario(scenario)
         self.world = self._world(self.scenario_name)
@@ -90,25 +87,28 @@ class ScanCore:
     def to_action_matrix(self, action_dict: dict[str, Any]) -> np.ndarray:
         """Validate per-agent actions and place them in the simulator's (n, 5) matrix.
 
+        A kind's action is a prefix of the simulator's (forward, left, yaw, up, pitch).
         Missing agents act with zeros; actions are clipped to [-1, 1] (as ML-Agents does).
         """
         acts = self._actions
         acts[:] = 0.0
         for aid, a in action_dict.items():
-            try:
-                i = self.agent_ids.index(aid)
-            except ValueError:
+            i = self._index.get(aid)
+            if i is None:
                 raise ValueError(f"action for unknown agent {aid!r}: agents are "
-                                 f"{self.agent_ids}") from None
-            a = np.asarray(a, dtype=np.float64)
-            shape = self.action_spaces[aid].shape
-            if a.shape != shape:
-                raise ValueError(f"action of {aid!r} has shape {a.shape}: expected {shape} "
-                                 f"(values in [-1, 1])")
-            if not np.all(np.isfinite(a)):
-                raise ValueError(f"action of {aid!r} is not finite: {a.tolist()}; "
-                                 f"allowed values in [-1, 1]")
-            acts[i, self._slots[i]] = np.clip(a, -1.0, 1.0)
+                                 f"{self.agent_ids}")
+            shape = self._action_shapes[i]
+            if getattr(a, "shape", None) != shape:
+                a = np.asarray(a, dtype=np.float64)
+                if a.shape != shape:
+                    raise ValueError(f"action of {aid!r} has shape {a.shape}: expected {shape} "
+                                     f"(values in [-1, 1])")
+            acts[i, :shape[0]] = a
+        if not np.isfinite(acts).all():
+            bad = self.agent_ids[int(np.flatnonzero(~np.isfinite(acts).all(axis=1))[0])]
+            raise ValueError(f"action of {bad!r} is not finite: "
+                             f"{np.asarray(action_dict[bad]).tolist()}; allowed values in [-1, 1]")
+        np.clip(acts, -1.0, 1.0, out=acts)
         return acts
 
     def step(self, action_dict: dict[str, Any]):

@@ -172,7 +172,7 @@ class GreedyTeam:
         left = (-move[0] * s + move[1] * c) / (spec.max_speed * dt)
         act = [np.clip(fwd, -1, 1), np.clip(left, -1, 1), a_yaw]
         if quad:
-            act = [act[0], act[1], a_up, a_pitch, a_yaw]
+            act = [act[0], act[1], a_yaw, a_up, a_pitch]
         return np.array(act, dtype=np.float32)
 
     def _free_move(self, i: int, heading: float, step: float,

@@ -58,16 +58,16 @@ def collision_at(occ, nx, ny, nz, cell, pos, radius, me, x, y, z):
 def move_robots(occ, nx, ny, nz, cell, actions, dt, kind, pos, vel, yaw, pitch, radius,
                 max_speed, max_vz, max_yaw_rate, max_pitch_rate, pitch_lo, pitch_hi,
                 collided):
-    """Apply one step of actions (n, 5) in robot order; write collision codes to ``collided``."""
+    """Apply actions (n, 5) = (forward, left, yaw, up, pitch) in robot order; write collision codes to ``collided``."""
     for i in range(pos.shape[0]):
         k = kind[i]
         a = actions[i]
-        y = yaw[i] + a[4] * max_yaw_rate[k] * dt
+        y = yaw[i] + a[2] * max_yaw_rate[k] * dt
         yaw[i] = math.atan2(math.sin(y), math.cos(y))
-        pitch[i] = min(max(pitch[i] + a[3] * max_pitch_rate[k] * dt, pitch_lo[k]), pitch_hi[k])
+        pitch[i] = min(max(pitch[i] + a[4] * max_pitch_rate[k] * dt, pitch_lo[k]), pitch_hi[k])
         c, s = math.cos(yaw[i]), math.sin(yaw[i])
         fwd, left = a[0] * max_speed[k], a[1] * max_speed[k]
-        vx, vy, vz = c * fwd - s * left, s * fwd + c * left, a[2] * max_vz[k]
+        vx, vy, vz = c * fwd - s * left, s * fwd + c * left, a[3] * max_vz[k]
         dx, dy, dz = vx * dt, vy * dt, vz * dt
         length = math.sqrt(dx * dx + dy * dy + dz * dz)
         n_sub = max(1, int(math.ceil(length / (0.25 * radius[i]))))

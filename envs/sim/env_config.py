@@ -63,8 +63,8 @@ class EnvConfig:
     """Arena size in metres (assumed)."""
     cell_size: float = 0.5
     """Voxel edge in metres (assumed)."""
-    start_jitter: float = 0.0
-    """Uniform noise (metres) added to start positions at each reset; 0 = fixed starts."""
+    start_jitter: float = 0.5
+    """Uniform noise (metres, per axis) on start positions at each reset (assumed); 0 = fixed."""
     wheeled: RobotSpec = field(default_factory=default_wheeled)
     quad: RobotSpec = field(default_factory=default_quad)
     scenario_distribution: ScenarioDistribution = field(default_factory=ScenarioDistribution)

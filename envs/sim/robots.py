@@ -1,8 +1,8 @@
 """Robot kinds: the paper's motion limits, body size and raycast sensor fans.
 
 Actions are in [-1, 1] per dimension and scaled by these limits:
-wheeled = (forward, left, yaw rate); quad = (forward, left, up, pitch rate, yaw rate).
-Inside the simulator every robot gets a 5-vector (wheeled: up = pitch = 0).
+wheeled = (forward, left, yaw rate); quad = (forward, left, yaw rate, up, pitch rate).
+Inside the simulator every robot gets this 5-vector (wheeled: the first 3; up = pitch = 0).
 Body frame: x forward, y left, z up; pitch > 0 tilts the nose (and the sensor fan) up.
 """
 
@@ -17,10 +17,9 @@ from rl_scan.config import check_range, fail
 KINDS = ("wheeled", "quad")
 WHEELED, QUAD = 0, 1
 ACTION_DIMS = {"wheeled": 3, "quad": 5}
-# Where each kind's action entries go in the simulator's 5-vector.
-ACTION_SLOTS = {"wheeled": (0, 1, 4), "quad": (0, 1, 2, 3, 4)}
 ACTION_NAMES = {"wheeled": ("forward", "left", "yaw_rate"),
-                "quad": ("forward", "left", "up", "pitch_rate", "yaw_rate")}
+                "quad": ("forward", "left", "yaw_rate", "up", "pitch_rate")}
+A_FORWARD, A_LEFT, A_YAW, A_UP, A_PITCH = range(5)
 
 
 @dataclass(frozen=True)
