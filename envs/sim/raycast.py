@@ -2,6 +2,7 @@
 
 ``cast_ray`` walks the voxels a ray crosses in order and stops at the first occupied one,
 at the arena boundary (floor, walls, ceiling) or at the sensor range, whichever is first.
+Only the part of the ray inside the bounding box of all occupied voxels is walked.
 It returns the distance, the flat voxel index (or a negative code) and the face the ray
 entered through (0..5 = -x, +x, -y, +y, -z, +z). ``cast_rays`` is the batch form used by
 tests and the benchmark; the world step inlines ``cast_ray``.
@@ -27,48 +28,109 @@ def _axis_init(o: float, d: float, i: int, cell: float):
 
 
 @nb.njit(cache=True)
-def cast_ray(occ, nx, ny, nz, cell, ox, oy, oz, dx, dy, dz, max_t):
+def occupied_box(occ, nx, ny, nz):
+    """Voxel bounds (i0, j0, k0, i1, j1, k1), hi exclusive, of all occupied voxels.
+
+    An empty grid gives an empty box (i0 = i1 = 0), which no ray enters.
+    """
+    box = np.zeros(6, dtype=np.int64)
+    box[0], box[1], box[2] = nx, ny, nz
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                if occ[(i * ny + j) * nz + k]:
+                    box[0], box[3] = min(box[0], i), max(box[3], i + 1)
+                    box[1], box[4] = min(box[1], j), max(box[4], j + 1)
+                    box[2], box[5] = min(box[2], k), max(box[5], k + 1)
+    if box[3] == 0:
+        box[:] = 0
+    return box
+
+
+@nb.njit(cache=True)
+def cast_ray(occ, nx, ny, nz, cell, box, ox, oy, oz, dx, dy, dz, max_t):
     """First hit of the ray o + t d (|d| = 1) for 0 <= t <= max_t.
 
     Returns (t, code, face): code >= 0 is the flat index of the occupied voxel hit,
     BOUNDARY means the ray left the arena at distance t, MISS means nothing in range.
-    The origin must be inside the arena.
+    The origin must be inside the arena. ``box`` (see ``occupied_box``) bounds every
+    occupied voxel: the ray is clipped to it by a slab test, so the DDA only walks
+    voxels that can be occupied (exact; it just skips empty space).
     """
-    ix = min(max(int(ox / cell), 0), nx - 1)
-    iy = min(max(int(oy / cell), 0), ny - 1)
-    iz = min(max(int(oz / cell), 0), nz - 1)
+    o0, o1, o2 = ox, oy, oz
+    d0, d1, d2 = dx, dy, dz
+    # Arena exit (the origin is inside the arena, so this is the first boundary crossing).
+    t_exit = INF
+    if d0 > 0.0:
+        t_exit = min(t_exit, (nx * cell - o0) / d0)
+    elif d0 < 0.0:
+        t_exit = min(t_exit, -o0 / d0)
+    if d1 > 0.0:
+        t_exit = min(t_exit, (ny * cell - o1) / d1)
+    elif d1 < 0.0:
+        t_exit = min(t_exit, -o1 / d1)
+    if d2 > 0.0:
+        t_exit = min(t_exit, (nz * cell - o2) / d2)
+    elif d2 < 0.0:
+        t_exit = min(t_exit, -o2 / d2)
+    no_hit_t, no_hit_code = (t_exit, BOUNDARY) if t_exit <= max_t else (max_t, MISS)
+    # Slab test against the occupied box.
+    t0, t1, enter = 0.0, min(max_t, t_exit), -1
+    for a in range(3):
+        o = o0 if a == 0 else (o1 if a == 1 else o2)
+        d = d0 if a == 0 else (d1 if a == 1 else d2)
+        lo, hi = box[a] * cell, box[a + 3] * cell
+        if d == 0.0:
+            if o < lo or o >= hi:
+                return no_hit_t, no_hit_code, -1
+        else:
+            ta, tb = (lo - o) / d, (hi - o) / d
+            if ta > tb:
+                ta, tb = tb, ta
+            if ta > t0:
+                t0, enter = ta, a
+            if tb < t1:
+                t1 = tb
+    if t0 > t1:
+        return no_hit_t, no_hit_code, -1
+    # Start voxel: the origin's, or the voxel where the ray enters the box.
+    px, py, pz = o0 + d0 * t0, o1 + d1 * t0, o2 + d2 * t0
+    ix = min(max(int(px / cell), box[0]), box[3] - 1)
+    iy = min(max(int(py / cell), box[1]), box[4] - 1)
+    iz = min(max(int(pz / cell), box[2]), box[5] - 1)
+    face = -1
+    if enter == 0:
+        ix, face = (box[0], 0) if d0 > 0 else (box[3] - 1, 1)
+    elif enter == 1:
+        iy, face = (box[1], 2) if d1 > 0 else (box[4] - 1, 3)
+    elif enter == 2:
+        iz, face = (box[2], 4) if d2 > 0 else (box[5] - 1, 5)
     flat = (ix * ny + iy) * nz + iz
     if occ[flat]:
-        return 0.0, flat, -1
-    sx, tx, ddx = _axis_init(ox, dx, ix, cell)
-    sy, ty, ddy = _axis_init(oy, dy, iy, cell)
-    sz, tz, ddz = _axis_init(oz, dz, iz, cell)
+        return t0, flat, face
+    sx, tx, ddx = _axis_init(o0, d0, ix, cell)
+    sy, ty, ddy = _axis_init(o1, d1, iy, cell)
+    sz, tz, ddz = _axis_init(o2, d2, iz, cell)
     while True:
         if tx <= ty and tx <= tz:
             t = tx
-            if t > max_t:
-                return max_t, MISS, -1
             ix += sx
-            if ix < 0 or ix >= nx:
-                return t, BOUNDARY, -1
+            if t > t1 or ix < box[0] or ix >= box[3]:
+                return no_hit_t, no_hit_code, -1
             tx += ddx
             face = 0 if sx > 0 else 1
         elif ty <= tz:
             t = ty
-            if t > max_t:
-                return max_t, MISS, -1
             iy += sy
-            if iy < 0 or iy >= ny:
-                return t, BOUNDARY, -1
+            if t > t1 or iy < box[1] or iy >= box[4]:
+                return no_hit_t, no_hit_code, -1
             ty += ddy
             face = 2 if sy > 0 else 3
         else:
             t = tz
-            if t > max_t:
-                return max_t, MISS, -1
             iz += sz
-            if iz < 0 or iz >= nz:
-                return t, BOUNDARY, -1
+            if t > t1 or iz < box[2] or iz >= box[5]:
+                return no_hit_t, no_hit_code, -1
             tz += ddz
             face = 4 if sz > 0 else 5
         flat = (ix * ny + iy) * nz + iz
@@ -80,8 +142,9 @@ def cast_ray(occ, nx, ny, nz, cell, ox, oy, oz, dx, dy, dz, max_t):
 def cast_rays(occ, shape, cell, origins, dirs, max_t, out_t, out_code, out_face):
     """Cast many rays (origins/dirs are (n, 3); dirs unit length) into preallocated outputs."""
     nx, ny, nz = shape[0], shape[1], shape[2]
+    box = occupied_box(occ, nx, ny, nz)
     for r in range(origins.shape[0]):
-        t, code, face = cast_ray(occ, nx, ny, nz, cell, origins[r, 0], origins[r, 1],
+        t, code, face = cast_ray(occ, nx, ny, nz, cell, box, origins[r, 0], origins[r, 1],
                                  origins[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], max_t[r])
         out_t[r] = t
         out_code[r] = code

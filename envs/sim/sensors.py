@@ -22,7 +22,7 @@ RAY_FEATURES = N_TAGS + 2
 
 
 @nb.njit(cache=True)
-def sense(occ, nx, ny, nz, cell, voxel_slot, slot_obj, slot_cells, cell_state, obj_left,
+def sense(occ, nx, ny, nz, cell, box, voxel_slot, slot_obj, slot_cells, cell_state, obj_left,
           obj_seen, obj_seen_by_quad, kind, pos, yaw, pitch, radius, ray_dirs, n_rays,
           sensor_range, quad_kind, scan, obs, new_cells, near):
     """Cast all rays, write ray blocks to ``obs[i, :n_rays*6]``, count newly scanned cells."""
@@ -46,7 +46,7 @@ def sense(occ, nx, ny, nz, cell, voxel_slot, slot_obj, slot_cells, cell_state, o
             lx, ly, lz = ray_dirs[k, r, 0], ray_dirs[k, r, 1], ray_dirs[k, r, 2]
             bx, bz = lx * cp - lz * sp, lx * sp + lz * cp
             dx, dy, dz = bx * cy - ly * sy, bx * sy + ly * cy, bz
-            t, code, face = cast_ray(occ, nx, ny, nz, cell, ox, oy, oz, dx, dy, dz, rng)
+            t, code, face = cast_ray(occ, nx, ny, nz, cell, box, ox, oy, oz, dx, dy, dz, rng)
             tag = -1
             if code == BOUNDARY:
                 tag = TAG_OTHER

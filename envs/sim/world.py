@@ -18,6 +18,7 @@ from rl_scan.envs.sim.dynamics import COLLIDE_NONE, collision_at, move_robots
 from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.grid import Cells, GridShape, exposed_cells
 from rl_scan.envs.sim.objects import voxelize
+from rl_scan.envs.sim.raycast import occupied_box
 from rl_scan.envs.sim.robots import KINDS, QUAD, WHEELED
 from rl_scan.envs.sim.scenarios import Scenario
 from rl_scan.envs.sim.sensors import RAY_FEATURES, sense
@@ -59,7 +60,7 @@ def observation_layout(config: EnvConfig) -> ObsLayout:
 
 
 @nb.njit(cache=True)
-def step_world(occ, shape, cell, actions, dt, kind, pos, vel, yaw, pitch, radius, kin,
+def step_world(occ, box, shape, cell, actions, dt, kind, pos, vel, yaw, pitch, radius, kin,
                voxel_slot, slot_obj, slot_cells, cell_state, obj_left, obj_seen,
                obj_seen_by_quad, ray_dirs, n_rays, sensor_range, move, scan, obs, new_cells,
                collided, own_off, comm_off, obj_off, extent, vnorm, vznorm, flags, obj_centre,
@@ -69,7 +70,7 @@ def step_world(occ, shape, cell, actions, dt, kind, pos, vel, yaw, pitch, radius
     if move:
         move_robots(occ, nx, ny, nz, cell, actions, dt, kind, pos, vel, yaw, pitch, radius,
                     kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], collided)
-    sense(occ, nx, ny, nz, cell, voxel_slot, slot_obj, slot_cells, cell_state, obj_left,
+    sense(occ, nx, ny, nz, cell, box, voxel_slot, slot_obj, slot_cells, cell_state, obj_left,
           obj_seen, obj_seen_by_quad, kind, pos, yaw, pitch, radius, ray_dirs, n_rays,
           sensor_range, 1, scan, obs, new_cells, near)
     write_state_and_comm(obs, own_off, comm_off, obj_off, kind, pos, vel, yaw, pitch, extent,
@@ -142,6 +143,7 @@ class World:
             self.obj_centre[o] = (mine.mean(axis=0) + 0.5) * self.grid.cell_size
             self.obj_top[o] = (mine[:, 2].max() + 1) * self.grid.cell_size
         self.shape_arr = np.array(self.grid.shape, dtype=np.int64)
+        self.box = occupied_box(self.occ, *self.grid.shape)
 
     def _build_team(self) -> None:
         cfg = self.config
@@ -224,7 +226,7 @@ class World:
         if self._args is None:  # arrays are updated in place, so the tuple is built once
             lay = self.layout
             self._actions = np.zeros((self.n_robots, 5))
-            self._args = (self.occ, self.shape_arr, self.grid.cell_size, self._actions,
+            self._args = (self.occ, self.box, self.shape_arr, self.grid.cell_size, self._actions,
                           self.config.dt, self.kind, self.pos, self.vel, self.yaw, self.pitch,
                           self.radius, self.kin, self.voxel_slot, self.slot_obj,
                           self.slot_cells, self.cell_state, self.obj_left, self.obj_seen,
