@@ -1,0 +1,89 @@
+"""The rl-scan command line: outputs, written files and one-line errors (exit status 2)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from rl_scan.cli import main
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_scenario_show_counts_cells(capsys):
+    code, out, _ = run(capsys, "scenario", "show", "ablation")
+    assert code == 0
+    assert "4 objects, 720 cells" in out
+    assert out.count("180") >= 4 and "quad_1" in out
+
+
+def test_scenario_export_yaml_round_trips(capsys, tmp_path):
+    path = tmp_path / "scene.yaml"
+    assert run(capsys, "scenario", "export", "train:12", str(path))[0] == 0
+    _, original, _ = run(capsys, "scenario", "show", "train:12")
+    _, reloaded, _ = run(capsys, "scenario", "show", str(path))
+    cells = [line for line in original.splitlines() if "cells (arena" in line]
+    assert cells and cells[0].split("'")[2] == [
+        line for line in reloaded.splitlines() if "cells (arena" in line][0].split("'")[2]
+
+
+def test_scenario_export_mesh(capsys, tmp_path):
+    path = tmp_path / "scene.obj"
+    assert run(capsys, "scenario", "export", "ablation", str(path))[0] == 0
+    mesh = trimesh.load(path, force="mesh")
+    np.testing.assert_allclose(mesh.bounds, [[5.0, 4.5, 0.0], [15.0, 15.0, 3.0]])
+
+
+def test_render_writes_png_and_gif(capsys, tmp_path):
+    png, gif = tmp_path / "last.png", tmp_path / "ep.gif"
+    code, out, _ = run(capsys, "render", "--scenario", "test:2", "--out", str(png))
+    assert code == 0 and "coverage" in out
+    assert Image.open(png).size[0] == 480
+    code, _, _ = run(capsys, "render", "--scenario", "test:2", "--set", "max_steps=40",
+                     "--every", "10", "--out", str(gif))
+    assert code == 0
+    assert Image.open(gif).n_frames == 5  # reset frame + steps 10, 20, 30, 40
+
+
+def test_bench_env_smoke_writes_figures(capsys, tmp_path):
+    out_json = tmp_path / "bench.json"
+    code, out, _ = run(capsys, "bench", "env", "--seconds", "0.2", "--seeds", "1", "--no-pin",
+                       "--json", str(out_json))
+    assert code == 0 and "raycast kernel rays/s" in out
+    res = json.loads(out_json.read_text())
+    for key in ("core_steps_per_s", "rllib_steps_per_s", "pettingzoo_steps_per_s",
+                "kernel_rays_per_s", "peak_rss_mb"):
+        assert res[key] > 0
+    assert res["rays_per_step"] == 4 * 216
+    assert res["greedy_ablation_coverage"] > res["random_ablation_coverage"]
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["scenario", "show", "train:1000"], "scenario='train:1000'"),
+    (["scenario", "show", "ablation", "--set", "max_step=3"], "did you mean 'max_steps'"),
+    (["scenario", "show", "ablation", "--team", "2"], "team='2'"),
+    (["scenario", "show", "ablation", "--comm", "9"], "comm_scheme=9"),
+    (["scenario", "show", "missing.yaml"], "'missing.yaml' does not exist"),
+    (["render", "--out", "x.jpg"], "out='x.jpg'"),
+    (["bench", "env", "--seconds", "0"], "seconds=0.0"),
+])
+def test_bad_input_is_one_clear_line(capsys, argv, needle):
+    code, out, err = run(capsys, *argv)
+    assert code == 2 and out == ""
+    assert needle in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("argv", [[], ["scenario"], ["bench", "env"], ["render"]])
+def test_help(capsys, argv):
+    with pytest.raises(SystemExit) as e:
+        main([*argv, "--help"])
+    assert e.value.code == 0
+    assert "usage: rl-scan" in capsys.readouterr().out
