@@ -35,7 +35,8 @@ class GreedyTeam:
     def __init__(self, core: ScanCore, wheeled_reach: float = 1.0, standoff: float = 0.9,
                  quad_standoff: float = 1.5, spread: float = 1.5, patience: int = 120):
         self.core = core
-        self.wheeled_reach, self.standoff, self.quad_standoff = wheeled_reach, standoff, quad_standoff
+        self.wheeled_reach, self.standoff = wheeled_reach, standoff
+        self.quad_standoff = quad_standoff
         self.spread, self.patience = spread, patience
         self._world = None
 

@@ -26,11 +26,11 @@ class ScanParallelEnv(ParallelEnv):
         self.possible_agents = list(self.core.agent_ids)
         self.agents: list[str] = []
 
-    @functools.lru_cache(maxsize=None)  # noqa: B019 - spaces must be the same objects
+    @functools.cache  # noqa: B019 - spaces must be the same objects
     def observation_space(self, agent: str):
         return self.core.observation_spaces[agent]
 
-    @functools.lru_cache(maxsize=None)  # noqa: B019
+    @functools.cache  # noqa: B019
     def action_space(self, agent: str):
         return self.core.action_spaces[agent]
 

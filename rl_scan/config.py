@@ -52,14 +52,13 @@ def _coerce(field: str, tp: Any, value: Any) -> Any:
         args = typing.get_args(tp)
         if value is None and type(None) in args:
             return None
-        errors = []
         for arg in args:
             if arg is type(None):
                 continue
             try:
                 return _coerce(field, arg, value)
-            except ConfigError as e:
-                errors.append(str(e))
+            except ConfigError:
+                continue
         fail(field, value, " or ".join(getattr(a, "__name__", str(a)) for a in args))
     if origin is typing.Literal:
         if value not in typing.get_args(tp):

@@ -58,7 +58,10 @@ def collision_at(occ, nx, ny, nz, cell, pos, radius, me, x, y, z):
 def move_robots(occ, nx, ny, nz, cell, actions, dt, kind, pos, vel, yaw, pitch, radius,
                 max_speed, max_vz, max_yaw_rate, max_pitch_rate, pitch_lo, pitch_hi,
                 collided):
-    """Apply actions (n, 5) = (forward, left, yaw, up, pitch) in robot order; write collision codes to ``collided``."""
+    """Apply actions (n, 5) = (forward, left, yaw, up, pitch) in robot order.
+
+    Collision codes (COLLIDE_*) go to ``collided``.
+    """
     for i in range(pos.shape[0]):
         k = kind[i]
         a = actions[i]
