@@ -140,11 +140,13 @@ def run_bench_env(config: EnvConfig, seconds: float = 3.0, seeds: int = 3,
     from rl_scan.envs.parallel_env import ScanParallelEnv
     from rl_scan.envs.rllib_env import ScanMultiAgentEnv
 
+    console.print("measuring the RLlib and PettingZoo adapters ...")
     rl = ScanMultiAgentEnv(_config_dict(config))
     res["rllib_steps_per_s"] = bench_adapter(rl, seconds, rl.action_spaces)
     pz = ScanParallelEnv(_config_dict(config))
     res["pettingzoo_steps_per_s"] = bench_adapter(
         pz, seconds, {a: pz.action_space(a) for a in pz.possible_agents})
+    console.print(f"playing greedy and random teams, {seeds} episode(s) per scene ...")
     teams = bench_teams(config, seeds)
     res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     res["wall_s"] = time.perf_counter() - t0

@@ -38,6 +38,7 @@ def _scenario_cmd(args: argparse.Namespace) -> int:
     args.scenario = args.name
     config = env_config_from_args(args)
     core = ScanCore(config)
+    core.reset(seed=0)  # for 'random', this draw is the one shown/exported
     world = core.world
     scenario = world.scenario
     if args.action == "export":
@@ -54,7 +55,6 @@ def _scenario_cmd(args: argparse.Namespace) -> int:
                       ", ".join(f"{p:g}" for p in o.position), f"{o.yaw:g}",
                       str(voxels[i]), str(world.obj_total[i]))
     console.print(table)
-    core.reset(seed=0)
     starts = Table(title="robot starts (seed 0; jitter "
                          f"{config.start_jitter} m per reset)")
     for col in ("agent", "x", "y", "z"):
