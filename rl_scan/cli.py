@@ -4,6 +4,7 @@
   rl-scan scenario export NAME OUT  write a scenario as YAML (re-loadable) or a mesh file
   rl-scan bench env                 simulator/adapter speed and scripted-team coverage
   rl-scan render                    PNG/GIF of an episode of the scripted greedy team
+  rl-scan train                     train POCA or PPO through Ray Tune
 
 Errors in the input (unknown keys, bad values, missing files) print one line naming the
 field and exit with status 2 before anything runs.
@@ -24,6 +25,7 @@ EXAMPLES = """examples:
   rl-scan scenario export train:12 scene.yaml
   rl-scan bench env --seconds 3
   rl-scan render --scenario test:0 --out runs/test0.gif --every 5
+  rl-scan train --algo ppo --preset smoke --scenario ablation
 """
 
 
@@ -137,6 +139,21 @@ def _render_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_cmd(args: argparse.Namespace) -> int:
+    from rl_scan.env_args import env_config_from_args, env_mapping_from_args
+    from rl_scan.tuning.launch import train
+
+    overrides = {k: v for k, v in (("num_env_runners", args.num_env_runners),
+                                   ("num_envs_per_env_runner", args.envs_per_runner),
+                                   ("total_env_steps", args.total_env_steps)) if v is not None}
+    env_config_from_args(args)  # validate before anything starts
+    run_dir = train(args.algo, env_mapping_from_args(args), args.preset, seed=args.seed,
+                    results_dir=args.results, name=args.name, address=args.address,
+                    resume=args.resume, preset_overrides=overrides)
+    print(f"done: {run_dir}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from rl_scan.env_args import add_env_args
 
@@ -176,6 +193,28 @@ def build_parser() -> argparse.ArgumentParser:
     benv.add_argument("--json", default=None, help="also write the figures to this JSON file")
     add_env_args(benv)
     benv.set_defaults(func=_bench_cmd)
+
+    tr = sub.add_parser(
+        "train", formatter_class=fmt, help="train POCA or PPO through Ray Tune",
+        description="Train a team through Ray Tune (local by default, a Ray cluster with "
+                    "--address). Writes RESULTS/NAME/ with run.yaml (config, seed, git commit), "
+                    "eval_metrics.json, and tune/trial/ with progress.csv, TensorBoard events "
+                    "and checkpoints; "
+                    "--resume continues an interrupted run from its last checkpoint.")
+    tr.add_argument("--algo", choices=("poca", "ppo"), default="poca", help="default poca")
+    tr.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick",
+                    help="budget: smoke (seconds), quick (minutes, default), paper (cluster)")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--results", default="results", help="results folder (default results/)")
+    tr.add_argument("--name", default=None, help="run name (default ALGO_SCENARIO_PRESET_sSEED)")
+    tr.add_argument("--address", default=None, help="Ray cluster address (default: local)")
+    tr.add_argument("--resume", action="store_true", help="continue the run named --name")
+    tr.add_argument("--num-env-runners", type=int, default=None,
+                    help="remote sampling actors (preset default; each needs a CPU)")
+    tr.add_argument("--envs-per-runner", type=int, default=None, help="envs per env runner")
+    tr.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
+    add_env_args(tr)
+    tr.set_defaults(func=_train_cmd)
 
     render = sub.add_parser("render", formatter_class=fmt, help="PNG/GIF of an episode",
                             description="Play one episode with a scripted team and write a "

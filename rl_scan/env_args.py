@@ -63,6 +63,11 @@ def add_env_args(parser: argparse.ArgumentParser, scenario: str | None = "ablati
 
 def env_config_from_args(args: argparse.Namespace) -> EnvConfig:
     """Resolve the environment flags into a validated EnvConfig."""
+    return make_env_config(env_mapping_from_args(args))
+
+
+def env_mapping_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """Only the EnvConfig fields the user set (so presets can fill in the rest)."""
     mapping: dict[str, Any] = load_yaml(args.config) if args.config else {}
     if getattr(args, "scenario", None):
         mapping["scenario"] = args.scenario
@@ -72,5 +77,4 @@ def env_config_from_args(args: argparse.Namespace) -> EnvConfig:
         mapping["comm_scheme"] = args.comm
     if args.no_object_info:
         mapping["object_info"] = False
-    mapping = deep_merge(mapping, parse_set(args.set))
-    return make_env_config(mapping)
+    return deep_merge(mapping, parse_set(args.set))

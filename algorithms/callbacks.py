@@ -1,0 +1,40 @@
+"""RLlib callback that logs the scanning metrics of every finished episode.
+
+The env puts ``episode_metrics`` (coverage, success, steps to 50/80/95 %, collisions,
+returns per kind; names in ``rl_scan.metrics``) into the last step's infos. They are
+logged under ``scan/<name>`` as windowed means, so they appear in
+``result["env_runners"]["scan/coverage"]`` (and under ``evaluation`` for eval runs).
+``steps_to_X`` is logged only for episodes that reached X, beside ``scan/reached_X``.
+"""
+
+from __future__ import annotations
+
+import math
+
+from ray.rllib.callbacks.callbacks import RLlibCallback
+
+from rl_scan import metrics as M
+
+PREFIX = "scan/"
+WINDOW = 100
+
+
+class ScanMetricsCallback(RLlibCallback):
+    """Logs ``scan/*`` episode metrics from the env's final infos."""
+
+    def on_episode_end(self, *, episode, metrics_logger=None, **kwargs) -> None:
+        if metrics_logger is None:
+            return
+        infos = episode.get_infos(-1)
+        summary = next((i["episode_metrics"] for i in infos.values()
+                        if isinstance(i, dict) and "episode_metrics" in i), None)
+        if summary is None:
+            return
+        for key, value in summary.items():
+            if key in M.STEPS_TO.values():
+                reached = not math.isnan(value)
+                metrics_logger.log_value(f"{PREFIX}reached_{key[len('steps_to_'):]}",
+                                         float(reached), reduce="mean", window=WINDOW)
+                if not reached:
+                    continue
+            metrics_logger.log_value(PREFIX + key, float(value), reduce="mean", window=WINDOW)

@@ -1,0 +1,87 @@
+"""Training launches through Tune: run folder contents, and SIGKILL -> --resume."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from rl_scan.config import ConfigError
+from rl_scan.tuning.launch import check_resources, train
+from rl_scan.tuning.presets import get_preset
+
+
+def _progress(run_dir: Path) -> list[dict]:
+    with open(run_dir / "tune" / "trial" / "progress.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def test_ppo_smoke_run_writes_a_complete_run_folder(ray_session, tmp_path):
+    run_dir = train("ppo", {"scenario": "test:2"}, "smoke", seed=3, results_dir=tmp_path)
+    meta = yaml.safe_load((run_dir / "run.yaml").read_text())
+    assert meta["algo"] == "ppo" and meta["seed"] == 3 and len(meta["git_commit"]) >= 7
+    assert meta["env_config"]["scenario"] == "test:2"
+    assert meta["env_config"]["max_steps"] == 50  # the smoke preset's env override
+    evals = json.loads((run_dir / "eval_metrics.json").read_text())
+    assert [e["training_iteration"] for e in evals] == [1, 2]
+    assert all(0.0 <= e["coverage"] <= 1.0 and e["episode_steps"] <= 50 for e in evals)
+    rows = _progress(run_dir)
+    assert [int(float(r["num_env_steps_sampled_lifetime"])) for r in rows] == [400, 800]
+    assert sorted(p.name for p in (run_dir / "tune" / "trial").glob("checkpoint_*"))
+    assert list((run_dir / "tune" / "trial").glob("events.out.tfevents*"))
+    with pytest.raises(ConfigError, match="exists: pass --resume"):
+        train("ppo", {"scenario": "test:2"}, "smoke", results_dir=tmp_path, name=run_dir.name)
+
+
+def test_bad_input_fails_before_ray_work(tmp_path):
+    with pytest.raises(ConfigError, match="algo='dqn'"):
+        train("dqn", {}, "smoke", results_dir=tmp_path)
+    with pytest.raises(ConfigError, match="preset='huge'"):
+        train("ppo", {}, "huge", results_dir=tmp_path)
+    with pytest.raises(ConfigError, match="unknown config key 'max_step'"):
+        train("ppo", {"max_step": 3}, "smoke", results_dir=tmp_path)
+    assert list(tmp_path.iterdir()) == []  # nothing half-written
+
+
+def test_resources_are_checked_before_launch():
+    check_resources(get_preset("smoke", {"num_env_runners": 1}), available=2)
+    with pytest.raises(ConfigError, match="num_env_runners=2 is invalid: allowed at most 1"):
+        check_resources(get_preset("smoke", {"num_env_runners": 2}), available=2)
+
+
+@pytest.mark.slow
+def test_sigkill_then_resume_continues_from_the_last_checkpoint(tmp_path):
+    """A run killed mid-training resumes from its last checkpoint, counters intact."""
+    cmd = [sys.executable, "-m", "rl_scan.cli", "train", "--algo", "ppo", "--preset", "smoke",
+           "--total-env-steps", "4000", "--results", str(tmp_path), "--name", "run"]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    trial = tmp_path / "run" / "tune" / "trial"
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list(trial.glob("checkpoint_*"))) < 3:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    # checkpoint_00000k holds iteration k+1
+    restored_from = max(int(p.name.split("_")[1]) for p in trial.glob("checkpoint_*")) + 1
+    assert 2 <= restored_from < 10, "kill should land mid-run"
+    out = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = _progress(tmp_path / "run")
+    iters = [int(r["training_iteration"]) for r in rows]
+    steps = [int(float(r["num_env_steps_sampled_lifetime"])) for r in rows]
+    assert iters[-1] == 10 and steps[-1] == 4000
+    # A restart from scratch would log iterations 1, 2, ... (and 400 env steps) again.
+    assert iters == sorted(set(iters)) and steps == sorted(set(steps))
+    evals = json.loads((tmp_path / "run" / "eval_metrics.json").read_text())
+    logged = [e["training_iteration"] for e in evals]
+    assert logged == sorted(set(logged)) and logged[-1] == 10
+    assert restored_from + 1 in logged  # the first iteration after the restore

@@ -1,0 +1,203 @@
+"""Launch one training run through Ray Tune (locally, or on a cluster with ``address``).
+
+Everything is validated before Ray starts: the env config, the preset, the algorithm and
+the CPUs the run needs (a trial that asks for more CPUs than Ray has would wait forever).
+A run folder ``RESULTS/NAME/`` holds ``run.yaml`` (algorithm, preset, resolved env config,
+seed, git commit, package versions), ``eval_metrics.json`` (one entry per evaluation),
+and Tune's experiment under ``tune/`` whose ``trial/`` folder holds ``progress.csv``,
+``result.json``, TensorBoard events and checkpoints. Our own files live outside ``tune/``
+because Tune re-syncs that folder from its staging copy when a run is restored. ``resume=True`` continues an interrupted run from its last checkpoint.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import os
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # Tune's boxed tables; we print one line/iter
+from ray.tune import Callback  # noqa: E402
+
+from rl_scan.config import ConfigError, deep_merge, fail, to_dict
+from rl_scan.envs.sim.env_config import make_env_config
+from rl_scan.tuning.presets import TrainPreset, get_preset
+
+# name -> (module, function building the AlgorithmConfig)
+ALGORITHMS = {"ppo": ("rl_scan.algorithms.ppo", "ppo_config"),
+              "poca": ("rl_scan.algorithms.poca", "poca_config")}
+RUN_FILE, EVAL_FILE = "run.yaml", "eval_metrics.json"
+TUNE_DIR = "tune"  # Tune's own experiment folder inside the run folder (Tune re-syncs it)
+ENV_STEPS = "num_env_steps_sampled_lifetime"
+
+
+def build_algorithm_config(algo: str, env_config: dict[str, Any], preset: TrainPreset,
+                           seed: int = 0):
+    """The RLlib AlgorithmConfig of a run (env overrides of the preset applied)."""
+    if algo not in ALGORITHMS:
+        fail("algo", algo, f"one of {sorted(ALGORITHMS)}")
+    module, func = ALGORITHMS[algo]
+    builder = getattr(importlib.import_module(module), func)
+    return builder(deep_merge(preset.env_overrides, env_config),
+                   train_batch_size=preset.train_batch_size,
+                   minibatch_size=preset.minibatch_size, num_epochs=preset.num_epochs,
+                   lr=preset.lr, num_env_runners=preset.num_env_runners,
+                   num_envs_per_env_runner=preset.num_envs_per_env_runner,
+                   evaluation_interval=preset.evaluation_interval,
+                   evaluation_episodes=preset.evaluation_episodes, seed=seed)
+
+
+def git_commit() -> str:
+    """The commit of the rl-scan source tree, or 'unknown' outside a git checkout."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                             cwd=Path(__file__).resolve().parent, timeout=10)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def required_cpus(preset: TrainPreset) -> int:
+    """CPU bundles of one trial: the training process plus one per env runner."""
+    return 1 + preset.num_env_runners
+
+
+def check_resources(preset: TrainPreset, available: float) -> None:
+    """Refuse runs whose trial could never be scheduled (Tune would wait silently)."""
+    need = required_cpus(preset)
+    if need > available:
+        fail("num_env_runners", preset.num_env_runners,
+             f"at most {int(available) - 1} on this Ray cluster ({available:g} CPUs; a run "
+             f"needs 1 + num_env_runners = {need})")
+
+
+def _versions() -> dict[str, str]:
+    import gymnasium
+    import numpy
+    import ray
+    import torch
+
+    import rl_scan
+
+    mods = {"rl_scan": rl_scan, "ray": ray, "torch": torch, "gymnasium": gymnasium,
+            "numpy": numpy}
+    return {name: str(mod.__version__) for name, mod in mods.items()}
+
+
+def _init_ray(address: str | None) -> float:
+    import ray
+
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
+    return float(ray.cluster_resources().get("CPU", 0))
+
+
+def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
+          seed: int = 0, results_dir: str | Path = "results", name: str | None = None,
+          address: str | None = None, resume: bool = False,
+          preset_overrides: dict[str, Any] | None = None, console=None) -> Path:
+    """Run (or resume) one Tune training run; returns its run folder."""
+    from rich.console import Console
+
+    console = console or Console()
+    preset = get_preset(preset_name, preset_overrides)
+    env_cfg = make_env_config(deep_merge(preset.env_overrides, env_config))
+    if algo not in ALGORITHMS:
+        fail("algo", algo, f"one of {sorted(ALGORITHMS)}")
+    name = name or f"{algo}_{env_cfg.scenario.replace(':', '')}_{preset_name}_s{seed}"
+    run_dir = Path(results_dir).resolve() / name
+    if run_dir.exists() and not resume:
+        raise ConfigError(f"run folder {str(run_dir)!r} exists: pass --resume to continue it "
+                          "or choose another --name")
+    if resume and not (run_dir / RUN_FILE).is_file():
+        raise ConfigError(f"--resume: no run to resume in {str(run_dir)!r}")
+    config = build_algorithm_config(algo, env_config, preset, seed)
+    cpus = _init_ray(address)
+    check_resources(preset, cpus)
+
+    from ray import tune
+
+    if not resume:
+        text = yaml.safe_dump({
+            "algo": algo, "preset": preset_name, "preset_config": to_dict(preset),
+            "seed": seed, "env_config": to_dict(env_cfg), "git_commit": git_commit(),
+            "versions": _versions(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+        }, sort_keys=False)
+        run_dir.mkdir(parents=True)
+        (run_dir / RUN_FILE).write_text(text)
+    progress = ProgressCallback(run_dir, preset.total_env_steps)
+    algo_cls = config.algo_class
+    if resume:
+        console.print(f"resuming {run_dir}")
+        # The run config, this progress callback included, is restored from tuner.pkl.
+        tuner = tune.Tuner.restore(str(run_dir / TUNE_DIR), trainable=algo_cls,
+                                   resume_errored=True,
+                                   resume_unfinished=True)
+    else:
+        tuner = tune.Tuner(
+            algo_cls, param_space=config,
+            tune_config=tune.TuneConfig(num_samples=1,
+                                        trial_dirname_creator=lambda t: "trial"),
+            run_config=tune.RunConfig(
+                storage_path=str(run_dir), name=TUNE_DIR, verbose=0,
+                stop={ENV_STEPS: preset.total_env_steps},
+                checkpoint_config=tune.CheckpointConfig(
+                    checkpoint_frequency=preset.checkpoint_frequency, checkpoint_at_end=True,
+                    num_to_keep=3),
+                failure_config=tune.FailureConfig(max_failures=2),
+                callbacks=[progress]))
+    console.print(f"[bold]{algo}[/] on {env_cfg.scenario} ({env_cfg.team.wheeled} wheeled + "
+                  f"{env_cfg.team.quad} quads, comm {env_cfg.comm_scheme}), preset "
+                  f"{preset_name}: {preset.total_env_steps:,} env steps in "
+                  f"{preset.iterations} iterations -> {run_dir}")
+    grid = tuner.fit()
+    errors = [r.error for r in grid if r.error]
+    if errors:
+        raise RuntimeError(f"training failed: {errors[0]}")
+    return run_dir
+
+
+class ProgressCallback(Callback):
+    """One line per iteration, and every evaluation appended to ``eval_metrics.json``."""
+
+    def __init__(self, run_dir: Path, total_steps: int) -> None:
+        self.run_dir, self.total = Path(run_dir), total_steps  # picklable: Tune saves it
+
+    def on_trial_result(self, iteration, trials, trial, result, **info) -> None:
+        runners = result.get("env_runners", {})
+        steps = int(result.get(ENV_STEPS, 0))
+        cov = runners.get("scan/coverage", math.nan)
+        line = (f"iter {result.get('training_iteration', 0):>4}  env steps {steps:>10,} "
+                f"({100 * steps / self.total:5.1f}%)  "
+                f"return {runners.get('episode_return_mean', math.nan):8.1f}  coverage {cov:5.3f}  {result.get('time_this_iter_s', 0):5.1f} s/iter")
+        evaluation = result.get("evaluation", {}).get("env_runners", {})
+        if evaluation:
+            ecov = evaluation.get("scan/coverage", math.nan)
+            line += f"  eval coverage {ecov:5.3f}"
+            self._append_eval(result, evaluation)
+        print(line, flush=True)
+
+    def _append_eval(self, result: dict, evaluation: dict) -> None:
+        path = self.run_dir / EVAL_FILE
+        entries = json.loads(path.read_text()) if path.is_file() else []
+        it = result.get("training_iteration", 0)
+        # After a restore, iterations past the checkpoint run again: the new ones win.
+        entries = [e for e in entries if e["training_iteration"] < it]
+        entries.append({
+            "training_iteration": result.get("training_iteration"),
+            "env_steps": result.get(ENV_STEPS),
+            "time_total_s": result.get("time_total_s"),
+            "episode_return_mean": evaluation.get("episode_return_mean"),
+            "module_returns": evaluation.get("module_episode_returns_mean", {}),
+            **{k[len("scan/"):]: v for k, v in evaluation.items() if k.startswith("scan/")},
+        })
+        path.write_text(json.dumps(entries, indent=1, default=float))
