@@ -6,7 +6,8 @@ A run folder ``RESULTS/NAME/`` holds ``run.yaml`` (algorithm, preset, resolved e
 seed, git commit, package versions), ``eval_metrics.json`` (one entry per evaluation),
 and Tune's experiment under ``tune/`` whose ``trial/`` folder holds ``progress.csv``,
 ``result.json``, TensorBoard events and checkpoints. Our own files live outside ``tune/``
-because Tune re-syncs that folder from its staging copy when a run is restored. ``resume=True`` continues an interrupted run from its last checkpoint.
+because Tune re-syncs that folder from its staging copy when a run is restored.
+``resume=True`` continues an interrupted run from its last checkpoint.
 """
 
 from __future__ import annotations
@@ -178,7 +179,8 @@ class ProgressCallback(Callback):
         cov = runners.get("scan/coverage", math.nan)
         line = (f"iter {result.get('training_iteration', 0):>4}  env steps {steps:>10,} "
                 f"({100 * steps / self.total:5.1f}%)  "
-                f"return {runners.get('episode_return_mean', math.nan):8.1f}  coverage {cov:5.3f}  {result.get('time_this_iter_s', 0):5.1f} s/iter")
+                f"return {runners.get('episode_return_mean', math.nan):8.1f}  "
+                f"coverage {cov:5.3f}  {result.get('time_this_iter_s', 0):5.1f} s/iter")
         evaluation = result.get("evaluation", {}).get("env_runners", {})
         if evaluation:
             ecov = evaluation.get("scan/coverage", math.nan)
