@@ -69,8 +69,8 @@ class GreedyTeam:
         self.banned = [set() for _ in range(n)]
 
     # ------------------------------------------------------------------- policy
-    def act(self) -> dict[str, np.ndarray]:
-        """Actions for every agent for the current state."""
+    def act(self, obs: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+        """Actions for every agent for the current state (reads the world, not ``obs``)."""
         if self._world is not self.core.world or self.core.t == 0:
             self._prepare()
         w = self._world
@@ -226,19 +226,19 @@ class RandomTeam:
         self.core = core
         self.rng = np.random.default_rng(seed)
 
-    def act(self) -> dict[str, np.ndarray]:
+    def act(self, obs: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
         return {aid: self.rng.uniform(-1, 1, sp.shape).astype(np.float32)
                 for aid, sp in self.core.action_spaces.items()}
 
 
 def run_episode(core: ScanCore, team, seed: int = 0, scenario: str | None = None,
                 frames: list | None = None, frame_every: int = 1) -> dict[str, float]:
-    """Play one episode with a scripted team; return its episode metrics."""
-    core.reset(seed=seed, options={"scenario": scenario} if scenario else None)
+    """Play one episode with a team (anything with ``act(obs) -> actions``); return metrics."""
+    obs = core.reset(seed=seed, options={"scenario": scenario} if scenario else None)
     if frames is not None:
         frames.append(core.render_rgb())
     while True:
-        _, _, term, trunc, infos = core.step(team.act())
+        obs, _, term, trunc, infos = core.step(team.act(obs))
         if frames is not None and (core.t % frame_every == 0 or term or trunc):
             frames.append(core.render_rgb())
         if term or trunc:

@@ -5,6 +5,7 @@
   rl-scan bench env                 simulator/adapter speed and scripted-team coverage
   rl-scan render                    PNG/GIF of an episode of the scripted greedy team
   rl-scan train                     train POCA or PPO through Ray Tune
+  rl-scan evaluate CHECKPOINT       metrics table of a trained team
 
 Errors in the input (unknown keys, bad values, missing files) print one line naming the
 field and exit with status 2 before anything runs.
@@ -127,15 +128,75 @@ def _render_cmd(args: argparse.Namespace) -> int:
         raise ConfigError(f"out={str(out)!r} is invalid: allowed a .png or .gif path")
     if args.every < 1:
         raise ConfigError(f"every={args.every} is invalid: allowed an integer >= 1")
-    config = env_config_from_args(args)
-    core = ScanCore(config)
-    team = GreedyTeam(core) if args.policy == "greedy" else RandomTeam(core, seed=args.seed)
+    if args.checkpoint:
+        core, team, label = _checkpoint_team(args)
+    else:
+        core = ScanCore(env_config_from_args(args))
+        team = GreedyTeam(core) if args.policy == "greedy" else RandomTeam(core, seed=args.seed)
+        label = f"{args.policy} team"
     frames: list = []
     metrics = run_episode(core, team, seed=args.seed, frames=frames, frame_every=args.every)
     save_frames(frames, out, fps=args.fps)
     print(f"wrote {out} ({len(frames) if out.suffix.lower() == '.gif' else 1} frames): "
-          f"{args.policy} team, coverage {100 * metrics['coverage']:.1f}% in "
+          f"{label}, coverage {100 * metrics['coverage']:.1f}% in "
           f"{metrics['episode_steps']:.0f} steps, {metrics['collisions']:.0f} collisions")
+    return 0
+
+
+def _checkpoint_team(args: argparse.Namespace):
+    """ScanCore on the run's env config (flags override it) and the checkpoint's team."""
+    from rl_scan.algorithms.rollout import (
+        PolicyTeam,
+        load_actors,
+        resolve_checkpoint,
+        run_env_config,
+    )
+    from rl_scan.config import deep_merge
+    from rl_scan.env_args import env_mapping_from_args
+    from rl_scan.envs.core import ScanCore
+    from rl_scan.envs.sim.env_config import make_env_config
+
+    ckpt = resolve_checkpoint(args.checkpoint)
+    config = make_env_config(deep_merge(run_env_config(ckpt), env_mapping_from_args(args)))
+    core = ScanCore(config)
+    team = PolicyTeam(load_actors(ckpt), explore=getattr(args, "explore", False))
+    return core, team, f"checkpoint {ckpt}"
+
+
+def _evaluate_cmd(args: argparse.Namespace) -> int:
+    import numpy as np
+    from rich.console import Console
+    from rich.table import Table
+
+    from rl_scan import metrics as M
+    from rl_scan.envs.heuristics import GreedyTeam, run_episode
+
+    if args.episodes < 1:
+        raise ConfigError(f"episodes={args.episodes} is invalid: allowed an integer >= 1")
+    core, team, label = _checkpoint_team(args)
+    runs = [run_episode(core, team, seed=args.seed + i) for i in range(args.episodes)]
+    greedy = [run_episode(core, GreedyTeam(core), seed=args.seed + i)
+              for i in range(args.episodes)] if not args.no_reference else []
+    table = Table(title=f"{label}\non {core.scenario_name}, {args.episodes} episodes "
+                        f"({'sampled' if args.explore else 'mean'} actions)")
+    for col in ("metric", "mean", "std", "min", "max", "greedy team mean"):
+        table.add_column(col, justify="left" if col == "metric" else "right")
+    summary = {}
+    for key in M.EPISODE_METRICS:
+        vals = np.array([r[key] for r in runs], dtype=float)
+        ok = vals[~np.isnan(vals)]
+        summary[key] = {"mean": float(ok.mean()) if len(ok) else None,
+                        "std": float(ok.std()) if len(ok) else None, "n": int(len(ok))}
+        ref = np.nanmean([g[key] for g in greedy]) if greedy else float("nan")
+        cells = [f"{f(ok):.3f}" if len(ok) else "-" for f in (np.mean, np.std, np.min, np.max)]
+        table.add_row(key + ("" if len(ok) == len(vals) else f" ({len(ok)}/{len(vals)} reached)"),
+                      *cells, "-" if np.isnan(ref) else f"{ref:.3f}")
+    Console().print(table)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"checkpoint": label, "episodes": runs,
+                                               "summary": summary}, indent=1, default=float))
+        print(f"wrote {args.json}")
     return 0
 
 
@@ -216,9 +277,27 @@ def build_parser() -> argparse.ArgumentParser:
     add_env_args(tr)
     tr.set_defaults(func=_train_cmd)
 
+    ev = sub.add_parser(
+        "evaluate", formatter_class=fmt, help="metrics of a trained team",
+        description="Play episodes with a checkpoint's policies (mean actions) on its run's "
+                    "env config, or on the scenario/team given here, and print coverage, "
+                    "success, steps to 50/80/95 %%, collisions and returns per kind, beside "
+                    "the scripted greedy team.")
+    ev.add_argument("checkpoint", help="a checkpoint, trial or run folder (newest checkpoint)")
+    ev.add_argument("--episodes", type=int, default=10)
+    ev.add_argument("--seed", type=int, default=0, help="reset seed of the first episode")
+    ev.add_argument("--explore", action="store_true", help="sample actions instead of the mean")
+    ev.add_argument("--no-reference", action="store_true", help="skip the greedy team")
+    ev.add_argument("--json", default=None, help="also write per-episode metrics here")
+    add_env_args(ev)
+    ev.set_defaults(func=_evaluate_cmd)
+
     render = sub.add_parser("render", formatter_class=fmt, help="PNG/GIF of an episode",
-                            description="Play one episode with a scripted team and write a "
-                                        "GIF (every N-th step) or a PNG of the last frame.")
+                            description="Play one episode with a checkpoint's team (if given) "
+                                        "or a scripted team and write a GIF (every N-th step) "
+                                        "or a PNG of the last frame.")
+    render.add_argument("checkpoint", nargs="?", default=None,
+                        help="a checkpoint, trial or run folder (default: a scripted team)")
     render.add_argument("--policy", choices=("greedy", "random"), default="greedy",
                         help="scripted team to play (default greedy)")
     render.add_argument("--out", default="render.gif", help="output .gif or .png")

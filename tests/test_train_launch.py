@@ -13,7 +13,9 @@ from pathlib import Path
 
 import pytest
 import yaml
+from PIL import Image
 
+from rl_scan.cli import main
 from rl_scan.config import ConfigError
 from rl_scan.tuning.launch import check_resources, train
 from rl_scan.tuning.presets import get_preset
@@ -24,8 +26,15 @@ def _progress(run_dir: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def test_ppo_smoke_run_writes_a_complete_run_folder(ray_session, tmp_path):
-    run_dir = train("ppo", {"scenario": "test:2"}, "smoke", seed=3, results_dir=tmp_path)
+@pytest.fixture(scope="module")
+def ppo_run(ray_session, tmp_path_factory):
+    """One PPO smoke run (2 iterations of 400 env steps) shared by the tests below."""
+    return train("ppo", {"scenario": "test:2"}, "smoke", seed=3,
+                 results_dir=tmp_path_factory.mktemp("results"))
+
+
+def test_ppo_smoke_run_writes_a_complete_run_folder(ppo_run):
+    run_dir = ppo_run
     meta = yaml.safe_load((run_dir / "run.yaml").read_text())
     assert meta["algo"] == "ppo" and meta["seed"] == 3 and len(meta["git_commit"]) >= 7
     assert meta["env_config"]["scenario"] == "test:2"
@@ -38,7 +47,21 @@ def test_ppo_smoke_run_writes_a_complete_run_folder(ray_session, tmp_path):
     assert sorted(p.name for p in (run_dir / "tune" / "trial").glob("checkpoint_*"))
     assert list((run_dir / "tune" / "trial").glob("events.out.tfevents*"))
     with pytest.raises(ConfigError, match="exists: pass --resume"):
-        train("ppo", {"scenario": "test:2"}, "smoke", results_dir=tmp_path, name=run_dir.name)
+        train("ppo", {"scenario": "test:2"}, "smoke", results_dir=run_dir.parent,
+              name=run_dir.name)
+
+
+def test_evaluate_and_render_a_checkpoint(ppo_run, tmp_path, capsys):
+    """The CLI plays the trained modules on the run's env config (test:2, 50-step episodes)."""
+    out_json, gif = tmp_path / "eval.json", tmp_path / "team.gif"
+    assert main(["evaluate", str(ppo_run), "--episodes", "2", "--json", str(out_json)]) == 0
+    res = json.loads(out_json.read_text())
+    assert len(res["episodes"]) == 2
+    assert all(e["episode_steps"] == 50 and e["cells_total"] == 207 for e in res["episodes"])
+    assert "greedy team mean" in capsys.readouterr().out
+    assert main(["render", str(ppo_run), "--out", str(gif), "--every", "10"]) == 0
+    assert Image.open(gif).n_frames == 6
+    assert main(["evaluate", str(tmp_path)]) == 2  # no checkpoint there: one-line error
 
 
 def test_bad_input_fails_before_ray_work(tmp_path):

@@ -1,0 +1,83 @@
+"""Play episodes with the trained actor modules of a checkpoint (no Ray needed).
+
+Works for every rl-scan algorithm: their checkpoints keep one actor module per robot kind
+under ``learner_group/learner/rl_module/<kind>`` (learner-only modules such as POCA's
+critic are skipped). A checkpoint can be given as the checkpoint folder, a trial folder or
+a run folder (the newest checkpoint is used); the run's env config comes from the
+``run.yaml`` above it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from rl_scan.config import ConfigError
+from rl_scan.envs.observations import kind_of
+from rl_scan.envs.sim.robots import KINDS
+
+MODULES = Path("learner_group") / "learner" / "rl_module"
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """The checkpoint folder for a checkpoint, trial or run folder (newest checkpoint)."""
+    path = Path(path)
+    if (path / MODULES).is_dir():
+        return path
+    found = sorted(path.glob("**/checkpoint_*/"), key=lambda p: (p.stat().st_mtime, p.name))
+    found = [p for p in found if (p / MODULES).is_dir()]
+    if not found:
+        raise ConfigError(f"checkpoint={str(path)!r} is invalid: allowed a checkpoint folder "
+                          "or a run/trial folder that contains one")
+    return found[-1]
+
+
+def run_env_config(checkpoint: Path) -> dict[str, Any]:
+    """The env config recorded in the run.yaml above a checkpoint ({} if there is none)."""
+    for parent in [checkpoint, *checkpoint.parents]:
+        if (parent / "run.yaml").is_file():
+            return yaml.safe_load((parent / "run.yaml").read_text()).get("env_config", {})
+    return {}
+
+
+def load_actors(checkpoint: Path) -> dict[str, Any]:
+    """The actor RLModules of a checkpoint, by robot kind."""
+    from ray.rllib.core.rl_module.rl_module import RLModule
+
+    root = checkpoint / MODULES
+    return {kind: RLModule.from_checkpoint(root / kind) for kind in KINDS
+            if (root / kind).is_dir()}
+
+
+class PolicyTeam:
+    """A team acting with trained modules: deterministic (mean) actions unless ``explore``."""
+
+    def __init__(self, modules: dict[str, Any], explore: bool = False):
+        from ray.rllib.core.columns import Columns
+
+        self.modules, self.explore, self._obs_key = modules, explore, Columns.OBS
+        self._dist_key = Columns.ACTION_DIST_INPUTS
+
+    @torch.no_grad()
+    def act(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        actions: dict[str, np.ndarray] = {}
+        for kind, module in self.modules.items():
+            aids = [a for a in obs if kind_of(a) == kind]
+            if not aids:
+                continue
+            batch = torch.as_tensor(np.stack([obs[a] for a in aids]))
+            out = module.forward_inference({self._obs_key: batch})
+            dist = module.get_inference_action_dist_cls().from_logits(out[self._dist_key])
+            if not self.explore:
+                dist = dist.to_deterministic()
+            act = np.clip(dist.sample().numpy(), -1.0, 1.0)
+            actions.update(zip(aids, act))
+        missing = sorted(kind_of(a) for a in obs if a not in actions)
+        if missing:
+            raise ConfigError(f"the checkpoint has no policy for robot kind {missing[0]!r}: "
+                              f"it has {sorted(self.modules)}")
+        return actions
