@@ -135,7 +135,7 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
         }, sort_keys=False)
         run_dir.mkdir(parents=True)
         (run_dir / RUN_FILE).write_text(text)
-    progress = ProgressCallback(run_dir, preset.total_env_steps)
+    progress = ProgressCallback(run_dir, preset.total_env_steps, preset.evaluation_interval)
     algo_cls = config.algo_class
     if resume:
         console.print(f"resuming {run_dir}")
@@ -170,8 +170,9 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
 class ProgressCallback(Callback):
     """One line per iteration, and every evaluation appended to ``eval_metrics.json``."""
 
-    def __init__(self, run_dir: Path, total_steps: int) -> None:
+    def __init__(self, run_dir: Path, total_steps: int, evaluation_interval: int) -> None:
         self.run_dir, self.total = Path(run_dir), total_steps  # picklable: Tune saves it
+        self.evaluation_interval = evaluation_interval
 
     def on_trial_result(self, iteration, trials, trial, result, **info) -> None:
         runners = result.get("env_runners", {})
@@ -181,8 +182,11 @@ class ProgressCallback(Callback):
                 f"({100 * steps / self.total:5.1f}%)  "
                 f"return {runners.get('episode_return_mean', math.nan):8.1f}  "
                 f"coverage {cov:5.3f}  {result.get('time_this_iter_s', 0):5.1f} s/iter")
+        # RLlib repeats the previous evaluation in the next results: use evaluation iterations.
+        it = result.get("training_iteration", 0)
+        evaluated = self.evaluation_interval > 0 and it % self.evaluation_interval == 0
         evaluation = result.get("evaluation", {}).get("env_runners", {})
-        if evaluation:
+        if evaluated and evaluation:
             ecov = evaluation.get("scan/coverage", math.nan)
             line += f"  eval coverage {ecov:5.3f}"
             self._append_eval(result, evaluation)
