@@ -117,6 +117,30 @@ def _bench_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_train_cmd(args: argparse.Namespace) -> int:
+    from rl_scan.bench_train import run_bench_train
+    from rl_scan.env_args import env_config_from_args, env_mapping_from_args
+    from rl_scan.tuning.launch import ALGORITHMS
+
+    algos = [a.strip() for a in args.algos.split(",") if a.strip()]
+    for a in algos:
+        if a not in ALGORITHMS:
+            raise ConfigError(f"algos={args.algos!r} is invalid: allowed a comma-separated "
+                              f"list of {sorted(ALGORITHMS)}")
+    for name in ("iterations", "batch", "minibatch", "epochs", "envs_per_runner"):
+        if getattr(args, name) < 1:
+            raise ConfigError(f"{name}={getattr(args, name)} is invalid: allowed an integer >= 1")
+    env_config_from_args(args)
+    res = run_bench_train(env_mapping_from_args(args), algos, iterations=args.iterations,
+                          train_batch_size=args.batch, minibatch_size=args.minibatch,
+                          num_epochs=args.epochs, envs_per_runner=args.envs_per_runner)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(res, indent=2, default=float))
+        print(f"wrote {args.json}")
+    return 0
+
+
 def _render_cmd(args: argparse.Namespace) -> int:
     from rl_scan.env_args import env_config_from_args
     from rl_scan.envs.core import ScanCore
@@ -254,6 +278,21 @@ def build_parser() -> argparse.ArgumentParser:
     benv.add_argument("--json", default=None, help="also write the figures to this JSON file")
     add_env_args(benv)
     benv.set_defaults(func=_bench_cmd)
+    btrain = bench_sub.add_parser(
+        "train", formatter_class=fmt, help="end-to-end training throughput",
+        description="Env steps/s of train() (sampling + learning) for each algorithm on the "
+                    "same env and batch sizes with 0 env runners, and for the first "
+                    "algorithm with 1 and 2 env runners; peak RSS of the Ray process tree.")
+    btrain.add_argument("--algos", default="ppo,poca",
+                        help="comma-separated algorithms; the first is the reference")
+    btrain.add_argument("--iterations", type=int, default=3, help="timed train() calls")
+    btrain.add_argument("--batch", type=int, default=2000, help="env steps per iteration")
+    btrain.add_argument("--minibatch", type=int, default=512, help="agent rows per minibatch")
+    btrain.add_argument("--epochs", type=int, default=3)
+    btrain.add_argument("--envs-per-runner", type=int, default=4)
+    btrain.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    add_env_args(btrain)
+    btrain.set_defaults(func=_bench_train_cmd)
 
     tr = sub.add_parser(
         "train", formatter_class=fmt, help="train POCA or PPO through Ray Tune",
