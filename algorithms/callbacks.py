@@ -5,6 +5,9 @@ returns per kind; names in ``rl_scan.metrics``) into the last step's infos. They
 logged under ``scan/<name>`` as windowed means, so they appear in
 ``result["env_runners"]["scan/coverage"]`` (and under ``evaluation`` for eval runs).
 ``steps_to_X`` is logged only for episodes that reached X, beside ``scan/reached_X``.
+
+It also stops training on a non-finite loss: the iteration fails before its checkpoint
+is written, so the last good checkpoint is the one a resume (or Tune's retry) uses.
 """
 
 from __future__ import annotations
@@ -19,8 +22,27 @@ PREFIX = "scan/"
 WINDOW = 100
 
 
+class NonFiniteLossError(FloatingPointError):
+    """A learner produced a NaN/inf loss."""
+
+
+def check_losses_finite(result: dict) -> None:
+    """Raise NonFiniteLossError naming the module and iteration if any loss is not finite."""
+    for module_id, stats in result.get("learners", {}).items():
+        for key, value in stats.items() if isinstance(stats, dict) else ():
+            if "loss" in key and isinstance(value, (int, float)) and not math.isfinite(value):
+                raise NonFiniteLossError(
+                    f"{key}={value} for module {module_id!r} at training iteration "
+                    f"{result.get('training_iteration')}: training stopped; the last good "
+                    "checkpoint is kept (lower the learning rate or check the inputs)")
+
+
 class ScanMetricsCallback(RLlibCallback):
-    """Logs ``scan/*`` episode metrics from the env's final infos."""
+    """Logs ``scan/*`` episode metrics from the env's final infos; stops on NaN losses."""
+
+    def on_train_result(self, *, algorithm=None, metrics_logger=None, result: dict,
+                        **kwargs) -> None:
+        check_losses_finite(result)
 
     def on_episode_end(self, *, episode, metrics_logger=None, **kwargs) -> None:
         if metrics_logger is None:
