@@ -103,13 +103,25 @@ def build_config(cls: type[T], mapping: dict[str, Any] | None = None, prefix: st
         close = difflib.get_close_matches(str(key), list(fields), n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ConfigError(
-            f"unknown config key {prefix}{key!r}{hint}: allowed keys are {sorted(fields)}")
+            f"unknown config key {prefix + str(key)!r}{hint}: allowed keys are {sorted(fields)}")
+    for k, v in mapping.items():  # a partial nested mapping overrides the field's default
+        default = _field_default(fields[k])
+        if isinstance(v, dict) and dataclasses.is_dataclass(default):
+            mapping[k] = deep_merge(to_dict(default), v)
     kwargs = {k: _coerce(prefix + k, hints[k], v) for k, v in mapping.items()}
     obj = cls(**kwargs)
     validate = getattr(obj, "validate", None)
     if validate is not None:
         validate(prefix)
     return obj
+
+
+def _field_default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None
 
 
 def with_overrides(obj: T, overrides: dict[str, Any] | None) -> T:
