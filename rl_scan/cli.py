@@ -211,7 +211,9 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
         ok = vals[~np.isnan(vals)]
         summary[key] = {"mean": float(ok.mean()) if len(ok) else None,
                         "std": float(ok.std()) if len(ok) else None, "n": int(len(ok))}
-        ref = np.nanmean([g[key] for g in greedy]) if greedy else float("nan")
+        ref_vals = np.array([g[key] for g in greedy], dtype=float)
+        ref_vals = ref_vals[~np.isnan(ref_vals)]
+        ref = ref_vals.mean() if len(ref_vals) else float("nan")
         cells = [f"{f(ok):.3f}" if len(ok) else "-" for f in (np.mean, np.std, np.min, np.max)]
         table.add_row(key + ("" if len(ok) == len(vals) else f" ({len(ok)}/{len(vals)} reached)"),
                       *cells, "-" if np.isnan(ref) else f"{ref:.3f}")
