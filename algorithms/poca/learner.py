@@ -1,0 +1,68 @@
+"""POCA's torch Learner: connector pipeline, clipped policy loss, entropy schedule.
+
+The critic's loss lives in ``POCACritic.compute_self_supervised_loss``; RLlib's Learner
+sums it with the two policy losses and steps each module's own optimizer.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from ray.rllib.connectors.learner import AddOneTsToEpisodesAndTruncate
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.learner.torch.torch_learner import TorchLearner
+from ray.rllib.evaluation.postprocessing import Postprocessing
+from ray.rllib.utils.annotations import override
+from ray.rllib.utils.lambda_defaultdict import LambdaDefaultDict
+from ray.rllib.utils.schedules.scheduler import Scheduler
+
+from rl_scan.algorithms.poca.connectors import AddGroupColumns, POCATargets
+from rl_scan.algorithms.poca.losses import (clipped_policy_loss, gaussian_entropy,
+                                            gaussian_logp_per_dim, masked_mean)
+
+
+class POCATorchLearner(TorchLearner):
+    """Learner for POCAConfig (see the package doc for the algorithm)."""
+
+    @override(TorchLearner)
+    def build(self) -> None:
+        super().build()
+        cfg = self.config
+        self.entropy_coeff_schedulers = LambdaDefaultDict(lambda module_id: Scheduler(
+            fixed_value_or_schedule=cfg.get_config_for_module(module_id).entropy_coeff,
+            framework=self.framework, device=self._device))
+        if self._learner_connector is not None:
+            team = cfg.poca_team
+            self._learner_connector.prepend(AddGroupColumns(
+                slots=team["slots"], obs_dim=max(team["obs_dims"]),
+                act_dim=max(team["act_dims"]), team_reward=team["team_reward"]))
+            self._learner_connector.prepend(AddOneTsToEpisodesAndTruncate())
+            self._learner_connector.append(POCATargets(gamma=cfg.gamma, lambda_=cfg.lambda_))
+
+    @override(TorchLearner)
+    def compute_loss_for_module(self, *, module_id: str, config, batch: dict[str, Any],
+                                fwd_out: dict[str, Any]) -> torch.Tensor:
+        mean, log_std = fwd_out[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
+        old_mean, old_log_std = batch[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
+        actions = batch[Columns.ACTIONS]
+        logp = gaussian_logp_per_dim(actions, mean, log_std)
+        old_logp = gaussian_logp_per_dim(actions, old_mean, old_log_std).detach()
+        mask = batch[Columns.LOSS_MASK]
+        policy_loss = clipped_policy_loss(logp, old_logp, batch[Postprocessing.ADVANTAGES],
+                                          float(config.clip_param), mask)
+        entropy = masked_mean(gaussian_entropy(log_std), mask)
+        beta = self.entropy_coeff_schedulers[module_id].get_current_value()
+        self.metrics.log_dict({"policy_loss": policy_loss.detach(),
+                               "entropy": entropy.detach(), "entropy_coeff": beta},
+                              key=module_id, window=1)
+        return policy_loss - beta * entropy
+
+    @override(TorchLearner)
+    def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
+        super().after_gradient_based_update(timesteps=timesteps)
+        from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
+
+        for module_id in self.module.keys():
+            self.entropy_coeff_schedulers[module_id].update(
+                timestep=timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0))

@@ -1,0 +1,121 @@
+"""POCA (MA-POCA) as an RLlib algorithm: ``POCAConfig`` / ``POCA``.
+
+Sampling, the learner update and weight sync are PPO's ``training_step`` (new API stack);
+POCA differs in its modules (decentralized Gaussian actors per robot kind plus one
+learner-only centralized critic) and its learner (group columns, lambda-returns from V,
+counterfactual advantages, per-dimension PPO clipping, critic regression).
+
+    config = poca_config({"scenario": "ablation"}, train_batch_size=4000, minibatch_size=1024)
+    algo = config.build_algo(); algo.train(); algo.save_to_path("ckpt")
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from ray.rllib.algorithms.algorithm_config import NotProvided
+from ray.rllib.algorithms.ppo import PPO, PPOConfig
+from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
+from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+from ray.rllib.utils.annotations import override
+
+from rl_scan.algorithms.common import ACTOR_HIDDENS, configure_scan
+from rl_scan.algorithms.poca.learner import POCATorchLearner
+from rl_scan.algorithms.poca.modules import CRITIC_ID, GaussianActor, POCACritic
+from rl_scan.envs.observations import action_spaces, kind_of, observation_spaces
+from rl_scan.envs.sim.env_config import make_env_config
+from rl_scan.envs.sim.robots import KINDS
+
+
+def team_layout(env_config: dict[str, Any]) -> dict[str, Any]:
+    """Critic slots of an env config: agent ids in team order, their kinds, sizes per kind."""
+    cfg = make_env_config(env_config)
+    obs, act = observation_spaces(cfg), action_spaces(cfg)
+    dims = {kind_of(a): (obs[a].shape[0], act[a].shape[0]) for a in obs}
+    return {"slots": list(cfg.team.agent_ids),
+            "slot_kinds": [KINDS.index(kind_of(a)) for a in cfg.team.agent_ids],
+            "obs_dims": [dims.get(k, (0, 0))[0] for k in KINDS],
+            "act_dims": [dims.get(k, (0, 0))[1] for k in KINDS],
+            "team_reward": cfg.reward_mode == "team"}
+
+
+class POCAConfig(PPOConfig):
+    """PPOConfig with POCA's defaults (paper: beta 0.005, eps 0.2, lambda 0.95, 3 epochs)."""
+
+    def __init__(self, algo_class=None):
+        super().__init__(algo_class=algo_class or POCA)
+        self.lr = 3e-4
+        self.gamma = 0.99
+        self.lambda_ = 0.95
+        self.clip_param = 0.2
+        self.entropy_coeff = 0.005
+        self.num_epochs = 3
+        self.use_kl_loss = False
+        self.poca_team: dict[str, Any] = {}
+        self.actor_hiddens = list(ACTOR_HIDDENS)
+        self.critic_hidden = 128
+        self.critic_heads = 4
+
+    def poca(self, *, team: dict[str, Any] = NotProvided, actor_hiddens=NotProvided,
+             critic_hidden: int = NotProvided, critic_heads: int = NotProvided) -> POCAConfig:
+        """POCA-specific settings; ``team`` comes from ``team_layout(env_config)``."""
+        if team is not NotProvided:
+            self.poca_team = dict(team)
+        if actor_hiddens is not NotProvided:
+            self.actor_hiddens = list(actor_hiddens)
+        if critic_hidden is not NotProvided:
+            self.critic_hidden = int(critic_hidden)
+        if critic_heads is not NotProvided:
+            self.critic_heads = int(critic_heads)
+        return self
+
+    @override(PPOConfig)
+    def get_default_learner_class(self):
+        return POCATorchLearner
+
+    @override(PPOConfig)
+    def get_default_rl_module_spec(self) -> RLModuleSpec:
+        return RLModuleSpec(module_class=GaussianActor,
+                            model_config={"hiddens": self.actor_hiddens})
+
+    def module_specs(self) -> MultiRLModuleSpec:
+        """One actor per robot kind in the team and the learner-only critic."""
+        team = self.poca_team
+        kinds = sorted({KINDS[k] for k in team["slot_kinds"]})
+        placeholder = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)  # the critic has no agent
+        specs = {kind: RLModuleSpec(module_class=GaussianActor,
+                                    model_config={"hiddens": self.actor_hiddens})
+                 for kind in kinds}
+        specs[CRITIC_ID] = RLModuleSpec(
+            module_class=POCACritic, learner_only=True, observation_space=placeholder,
+            action_space=placeholder,
+            model_config={"slot_kinds": team["slot_kinds"], "obs_dims": team["obs_dims"],
+                          "act_dims": team["act_dims"], "hidden": self.critic_hidden,
+                          "heads": self.critic_heads})
+        return MultiRLModuleSpec(rl_module_specs=specs)
+
+
+class POCA(PPO):
+    """MA-POCA on RLlib's new API stack (PPO's sampling loop, POCA's learner and modules)."""
+
+    @classmethod
+    @override(PPO)
+    def get_default_config(cls) -> POCAConfig:
+        return POCAConfig()
+
+
+def poca_config(env_config: dict[str, Any], *, train_batch_size: int, minibatch_size: int,
+                num_epochs: int = 3, lr: float | list = 3e-4, gamma: float = 0.99,
+                lambda_: float = 0.95, clip_param: float = 0.2,
+                entropy_coeff: float | list = 0.005, **common: Any) -> POCAConfig:
+    """POCAConfig for the scanning env (``common`` goes to ``configure_scan``)."""
+    config = configure_scan(POCAConfig(), env_config, **common)
+    config.poca(team=team_layout(env_config))
+    return (config
+            .rl_module(rl_module_spec=config.module_specs())
+            .training(train_batch_size_per_learner=train_batch_size,
+                      minibatch_size=minibatch_size, num_epochs=num_epochs, lr=lr,
+                      gamma=gamma, lambda_=lambda_, clip_param=clip_param,
+                      entropy_coeff=entropy_coeff))
