@@ -18,8 +18,12 @@ from ray.rllib.utils.lambda_defaultdict import LambdaDefaultDict
 from ray.rllib.utils.schedules.scheduler import Scheduler
 
 from rl_scan.algorithms.poca.connectors import AddGroupColumns, POCATargets
-from rl_scan.algorithms.poca.losses import (clipped_policy_loss, gaussian_entropy,
-                                            gaussian_logp_per_dim, masked_mean)
+from rl_scan.algorithms.poca.losses import (
+    clipped_policy_loss,
+    gaussian_entropy,
+    gaussian_logp_per_dim,
+    masked_mean,
+)
 
 
 class POCATorchLearner(TorchLearner):
