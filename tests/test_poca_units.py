@@ -1,0 +1,155 @@
+"""POCA pieces against hand-computed values (no Ray cluster: modules and learners run locally)."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from ray.rllib.core.columns import Columns
+from ray.rllib.evaluation.postprocessing import Postprocessing
+from ray.rllib.utils.postprocessing.value_predictions import compute_value_targets
+
+from rl_scan.algorithms.poca.learner import POCATorchLearner
+from rl_scan.algorithms.poca.losses import (
+    clipped_policy_loss,
+    gaussian_entropy,
+    lambda_returns,
+    poca_critic_loss,
+    standardize,
+    trust_region_value_loss,
+)
+
+
+def test_lambda_returns_terminated_and_truncated_chunks():
+    # gamma 0.9, lambda 0.5; each chunk is followed by its bootstrap row.
+    # chunk A terminates at its 3rd step: G2 = 2; G1 = 0 + .9(.5*2.0 + .5*2) = 1.8;
+    #   G0 = 1 + .9(.5*1.0 + .5*1.8) = 2.26; its bootstrap row (V = 3) is ignored: G = V.
+    # chunk B is truncated after 2 steps, bootstrap V = 4: G1 = 1 + .9*4 = 4.6;
+    #   G0 = 1 + .9(.5*2.0 + .5*4.6) = 3.97.
+    values = np.array([0.5, 1.0, 2.0, 3.0, 1.0, 2.0, 4.0])
+    rewards = np.array([1.0, 0.0, 2.0, 0.0, 1.0, 1.0, 0.0])
+    term = np.array([0, 0, 1, 0, 0, 0, 0], bool)
+    trunc = np.array([0, 0, 0, 0, 0, 1, 0], bool)
+    g = lambda_returns(values, rewards, term, trunc, gamma=0.9, lambda_=0.5)
+    np.testing.assert_allclose(g, [2.26, 1.8, 2.0, 3.0, 3.97, 4.6, 4.0], rtol=1e-6)
+    # RLlib's GAE value targets agree on every real (non-bootstrap) row
+    rllib = compute_value_targets(values, rewards, term.astype(float), trunc.astype(float),
+                                  0.9, 0.5)
+    real = [0, 1, 2, 4, 5]
+    np.testing.assert_allclose(g[real], rllib[real], rtol=1e-6)
+
+
+def test_clipped_policy_loss_by_hand():
+    # row 0: r = e^.5 = 1.65, A = +1 -> min(1.65, 1.2) = 1.2
+    # row 1: r = e^-.5 = .607, A = -2 -> min(-1.213, .8 * -2 = -1.6) = -1.6
+    # row 2 is masked out. loss = -(1.2 - 1.6) / 2 = 0.2
+    logp = torch.tensor([[0.5], [-0.5], [9.0]])
+    old = torch.zeros(3, 1)
+    adv = torch.tensor([1.0, -2.0, 100.0])
+    loss = clipped_policy_loss(logp, old, adv, 0.2, torch.tensor([1.0, 1.0, 0.0]))
+    assert loss.item() == pytest.approx(0.2, abs=1e-6)
+
+
+def test_ratio_is_clipped_per_action_dimension():
+    # dim 0 ratio e^.5 -> clipped to 1.2; dim 1 ratio 1; A = 1: mean(1.2, 1.0) = 1.1
+    loss = clipped_policy_loss(torch.tensor([[0.5, 0.0]]), torch.zeros(1, 2),
+                               torch.tensor([1.0]), 0.2, torch.ones(1))
+    assert loss.item() == pytest.approx(-1.1, abs=1e-6)
+
+
+def test_trust_region_value_loss_and_critic_weighting_by_hand():
+    # row 0: max((2-1)^2 = 1, (2 - (0 + .2))^2 = 3.24) = 3.24
+    # row 1: max((3-3)^2 = 0, (3 - (3.5 - .2))^2 = .09) = .09 -> mean 1.665
+    v, v_old, g = torch.tensor([1.0, 3.0]), torch.tensor([0.0, 3.5]), torch.tensor([2.0, 3.0])
+    loss = trust_region_value_loss(v, v_old, g, 0.2, torch.ones(2))
+    assert loss.item() == pytest.approx(1.665, abs=1e-6)
+    assert poca_critic_loss(torch.tensor(2.0), torch.tensor(4.0)).item() == 2.0  # .5(2+.5*4)
+
+
+def test_standardize_uses_valid_rows_only():
+    x = np.array([1.0, 3.0, 1000.0])
+    np.testing.assert_allclose(standardize(x, np.array([1, 1, 0])), [-1.0, 1.0, 998.0])
+
+
+def test_full_policy_module_loss_on_a_tiny_batch():
+    """Learner.compute_loss_for_module = clipped loss - beta * entropy, computed by hand."""
+    log_std = torch.tensor([[0.0, math.log(2.0)]])
+    # old mean 0, new mean 0.1 on dim 0; action (0.5, 0) ->
+    # dim 0: logp_new - logp_old = -(.4^2 - .5^2)/2 = .045 -> r = e^.045 = 1.046 (< 1.2)
+    # dim 1: same distribution -> r = 1.  A = 2 -> surrogate mean = (2*1.046 + 2) / 2
+    fwd = {Columns.ACTION_DIST_INPUTS: torch.cat([torch.tensor([[0.1, 0.0]]), log_std], -1)}
+    batch = {Columns.ACTION_DIST_INPUTS: torch.cat([torch.zeros(1, 2), log_std], -1),
+             Columns.ACTIONS: torch.tensor([[0.5, 0.0]]),
+             Columns.LOSS_MASK: torch.ones(1), Postprocessing.ADVANTAGES: torch.tensor([2.0])}
+    beta = 0.005
+    fake = SimpleNamespace(
+        entropy_coeff_schedulers={"quad": SimpleNamespace(get_current_value=lambda: beta)},
+        metrics=SimpleNamespace(log_dict=lambda *a, **k: None))
+    loss = POCATorchLearner.compute_loss_for_module(
+        fake, module_id="quad", config=SimpleNamespace(clip_param=0.2), batch=batch,
+        fwd_out=fwd)
+    entropy = 2 * 0.5 * (math.log(2 * math.pi) + 1) + math.log(2.0)
+    expected = -(2 * math.exp(0.045) + 2) / 2 - beta * entropy
+    assert loss.item() == pytest.approx(expected, abs=1e-5)
+    assert gaussian_entropy(log_std).item() == pytest.approx(entropy, abs=1e-6)
+
+
+def _critic(slot_kinds, obs_dims=(3, 4), act_dims=(2, 3)):
+    import gymnasium as gym
+    from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+
+    from rl_scan.algorithms.poca.modules import POCACritic
+
+    box = gym.spaces.Box(-1, 1, (1,), np.float32)
+    torch.manual_seed(0)
+    return RLModuleSpec(module_class=POCACritic, observation_space=box, action_space=box,
+                        learner_only=True,
+                        model_config={"slot_kinds": list(slot_kinds), "obs_dims": list(obs_dims),
+                                      "act_dims": list(act_dims), "hidden": 16,
+                                      "heads": 2}).build()
+
+
+def _group(n_slots, rows=5, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(rows, n_slots, 4, generator=g) * 2 - 1,
+            torch.rand(rows, n_slots, 3, generator=g) * 2 - 1, torch.ones(rows, n_slots))
+
+
+@pytest.mark.parametrize("slot_kinds", [[0, 0, 1, 1], [0, 1, 1, 1]])
+def test_baseline_ignores_own_action_but_not_teammates(slot_kinds):
+    critic = _critic(slot_kinds)
+    obs, act, present = _group(4)
+    for me in range(4):
+        idx = torch.full((5,), me)
+        v, b = critic.values_and_baselines(obs, act, idx, present)
+        own = act.clone()
+        own[:, me] += 0.7
+        v2, b2 = critic.values_and_baselines(obs, own, idx, present)
+        assert torch.allclose(b, b2) and torch.allclose(v, v2)
+        mate = act.clone()
+        mate[:, (me + 1) % 4] += 0.7
+        v3, b3 = critic.values_and_baselines(obs, mate, idx, present)
+        assert torch.allclose(v, v3)  # V never sees actions
+        assert not torch.allclose(b, b3, atol=1e-6)
+
+
+def test_critic_ignores_padding_and_absent_robots():
+    critic = _critic([0, 0, 1, 1])
+    obs, act, present = _group(4)
+    idx = torch.zeros(5, dtype=torch.long)
+    v, b = critic.values_and_baselines(obs, act, idx, present)
+    padded = obs.clone()
+    padded[:, :2, 3:] = 5.0  # wheeled robots have 3 obs features: the 4th is padding
+    v2, b2 = critic.values_and_baselines(padded, act, idx, present)
+    assert torch.allclose(v, v2) and torch.allclose(b, b2)
+    absent = present.clone()
+    absent[:, 3] = 0.0
+    changed = obs.clone()
+    changed[:, 3] += 1.0
+    v3, _ = critic.values_and_baselines(obs, act, idx, absent)
+    v4, _ = critic.values_and_baselines(changed, act, idx, absent)
+    assert torch.allclose(v3, v4)  # an absent robot's observation is masked out
+    assert not torch.allclose(v, v3)
