@@ -12,6 +12,7 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.postprocessing.value_predictions import compute_value_targets
 
+from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca.learner import POCATorchLearner
 from rl_scan.algorithms.poca.losses import (
     clipped_policy_loss,
@@ -75,7 +76,7 @@ def test_standardize_uses_valid_rows_only():
 
 
 def test_full_policy_module_loss_on_a_tiny_batch():
-    """Learner.compute_loss_for_module = clipped loss - beta * entropy, computed by hand."""
+    """compute_loss_for_module = clipped loss - beta * entropy + critic loss, by hand."""
     log_std = torch.tensor([[0.0, math.log(2.0)]])
     # old mean 0, new mean 0.1 on dim 0; action (0.5, 0) ->
     # dim 0: logp_new - logp_old = -(.4^2 - .5^2)/2 = .045 -> r = e^.045 = 1.046 (< 1.2)
@@ -84,15 +85,16 @@ def test_full_policy_module_loss_on_a_tiny_batch():
     batch = {Columns.ACTION_DIST_INPUTS: torch.cat([torch.zeros(1, 2), log_std], -1),
              Columns.ACTIONS: torch.tensor([[0.5, 0.0]]),
              Columns.LOSS_MASK: torch.ones(1), Postprocessing.ADVANTAGES: torch.tensor([2.0])}
-    beta = 0.005
+    beta, critic_loss = 0.005, 0.75  # the critic's own loss is checked separately
+    critic = SimpleNamespace(loss=lambda rows, eps: {"critic_loss": torch.tensor(critic_loss)})
     fake = SimpleNamespace(
         entropy_coeff_schedulers={"quad": SimpleNamespace(get_current_value=lambda: beta)},
-        metrics=SimpleNamespace(log_dict=lambda *a, **k: None))
+        metrics=SimpleNamespace(log_dict=lambda *a, **k: None), module={"critic": critic})
     loss = POCATorchLearner.compute_loss_for_module(
         fake, module_id="quad", config=SimpleNamespace(clip_param=0.2), batch=batch,
         fwd_out=fwd)
     entropy = 2 * 0.5 * (math.log(2 * math.pi) + 1) + math.log(2.0)
-    expected = -(2 * math.exp(0.045) + 2) / 2 - beta * entropy
+    expected = -(2 * math.exp(0.045) + 2) / 2 - beta * entropy + critic_loss
     assert loss.item() == pytest.approx(expected, abs=1e-5)
     assert gaussian_entropy(log_std).item() == pytest.approx(entropy, abs=1e-6)
 
@@ -134,6 +136,25 @@ def test_baseline_ignores_own_action_but_not_teammates(slot_kinds):
         v3, b3 = critic.values_and_baselines(obs, mate, idx, present)
         assert torch.allclose(v, v3)  # V never sees actions
         assert not torch.allclose(b, b3, atol=1e-6)
+
+
+def test_critic_loss_on_rows_is_the_ml_agents_weighting():
+    critic = _critic([0, 0, 1, 1])
+    obs, act, present = _group(4)
+    idx = torch.arange(5) % 4
+    with torch.no_grad():
+        v, b = critic.values_and_baselines(obs, act, idx, present)
+    rows = {C.GROUP_OBS: obs, C.GROUP_ACT: act, C.SELF_IDX: idx, C.GROUP_MASK: present,
+            C.RETURNS: v + 1.0, C.OLD_VALUES: v, C.OLD_BASELINES: b,
+            Columns.LOSS_MASK: torch.ones(5)}
+    out = critic.loss(rows, epsilon=0.2)
+    # unchanged weights (v = v_old, b = b_old): clipping changes nothing, so the losses
+    # are the plain squared errors of both heads against the same return G = v + 1
+    assert out["value_loss"].item() == pytest.approx(1.0, abs=1e-5)
+    expected_b = ((v + 1.0 - b) ** 2).mean().item()
+    assert out["baseline_loss"].item() == pytest.approx(expected_b, abs=1e-5)
+    assert out["critic_loss"].item() == pytest.approx(0.5 * (1.0 + 0.5 * expected_b),
+                                                      abs=1e-5)
 
 
 def test_critic_ignores_padding_and_absent_robots():

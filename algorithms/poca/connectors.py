@@ -4,9 +4,9 @@
 observation and action at each step into each agent row, plus the row's own slot and the
 group reward, so that every row is self-contained: RLlib minibatches each module's rows
 independently, so cross-agent inputs cannot be joined later (notes/rllib-2.60.md 3.2).
-``POCATargets`` (last, after ``NumpyToTensor``) runs the critic without gradients,
+``POCATargets`` (last, after ``NumpyToTensor``) runs the critic without gradients and
 computes lambda-returns of the group reward bootstrapped from V and the counterfactual
-advantages, and builds the critic's own batch from the policy rows.
+advantages; the critic later learns on the same policy rows.
 """
 
 from __future__ import annotations
@@ -22,9 +22,6 @@ from ray.rllib.evaluation.postprocessing import Postprocessing
 from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca.losses import lambda_returns, standardize
 from rl_scan.algorithms.poca.modules import CRITIC_ID
-
-CRITIC_COLUMNS = (C.GROUP_OBS, C.GROUP_ACT, C.SELF_IDX, C.GROUP_MASK, C.RETURNS,
-                  C.OLD_VALUES, C.OLD_BASELINES, Columns.LOSS_MASK)
 
 
 class AddGroupColumns(ConnectorV2):
@@ -74,7 +71,7 @@ class AddGroupColumns(ConnectorV2):
 
 
 class POCATargets(ConnectorV2):
-    """Lambda-returns from V, advantages = returns - b_i, and the critic's batch."""
+    """Lambda-returns from V and advantages = returns - b_i, per policy row."""
 
     def __init__(self, input_observation_space=None, input_action_space=None, *,
                  gamma: float, lambda_: float):
@@ -83,7 +80,6 @@ class POCATargets(ConnectorV2):
 
     def __call__(self, *, rl_module, batch: dict[str, Any], episodes, **kwargs) -> Any:
         critic = rl_module[CRITIC_ID]
-        parts = []
         for module_id in [m for m in batch if m != CRITIC_ID]:
             rows = batch[module_id]
             with torch.no_grad():
@@ -99,7 +95,4 @@ class POCATargets(ConnectorV2):
             rows[Postprocessing.ADVANTAGES] = torch.as_tensor(advantages, device=device)
             rows[C.RETURNS] = torch.as_tensor(returns, device=device)
             rows[C.OLD_VALUES], rows[C.OLD_BASELINES] = values, baselines
-            parts.append({k: rows[k] for k in CRITIC_COLUMNS})
-        if parts:
-            batch[CRITIC_ID] = {k: torch.cat([p[k] for p in parts]) for k in CRITIC_COLUMNS}
         return batch

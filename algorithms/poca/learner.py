@@ -1,7 +1,10 @@
 """POCA's torch Learner: connector pipeline, clipped policy loss, entropy schedule.
 
-The critic's loss lives in ``POCACritic.compute_self_supervised_loss``; RLlib's Learner
-sums it with the two policy losses and steps each module's own optimizer.
+Each policy module's loss also carries the critic's regression loss on the same rows.
+RLlib minibatches every module separately and runs until the largest batch has done
+``num_epochs``; a separate critic batch (all robots' rows) would silently give the
+actors extra epochs. RLlib sums the module losses and steps every module's optimizer,
+the critic's included.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from rl_scan.algorithms.poca.losses import (
     gaussian_logp_per_dim,
     masked_mean,
 )
+from rl_scan.algorithms.poca.modules import CRITIC_ID
 
 
 class POCATorchLearner(TorchLearner):
@@ -57,16 +61,18 @@ class POCATorchLearner(TorchLearner):
                                           float(config.clip_param), mask)
         entropy = masked_mean(gaussian_entropy(log_std), mask)
         beta = self.entropy_coeff_schedulers[module_id].get_current_value()
+        critic = self.module[CRITIC_ID].loss(batch, float(config.clip_param))
         self.metrics.log_dict({"policy_loss": policy_loss.detach(),
-                               "entropy": entropy.detach(), "entropy_coeff": beta},
+                               "entropy": entropy.detach(), "entropy_coeff": beta,
+                               **{k: v.detach() for k, v in critic.items()}},
                               key=module_id, window=1)
-        return policy_loss - beta * entropy
+        return policy_loss - beta * entropy + critic["critic_loss"]
 
     @override(TorchLearner)
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
         super().after_gradient_based_update(timesteps=timesteps)
         from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-        for module_id in self.module.keys():
+        for module_id in set(self.module.keys()) - {CRITIC_ID}:
             self.entropy_coeff_schedulers[module_id].update(
                 timestep=timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0))

@@ -1,10 +1,10 @@
 """POCA's RLModules: one Gaussian actor per robot kind and one centralized critic.
 
 The critic is learner-only (never shipped to env runners) and shared by both kinds. Per
-kind it has an observation encoder and an observation+action encoder (entity
-embeddings); a residual self-attention block with key masks for absent robots and a
-masked mean pool turn the team's entities into one vector, as in ML-Agents'
-``MultiAgentNetworkBody``:
+kind it encodes each robot's observation once; an observation entity embedding and an
+observation+action entity embedding are taken from that encoding (as ML-Agents'
+``MultiAgentNetworkBody`` does); a residual self-attention block with key masks for
+absent robots and a masked mean pool turn the team's entities into one vector:
   V(s)        from every robot's observation entity;
   b_i(s, a_-i) from robot i's observation entity and the others' observation+action ones.
 Slots are fixed per env config (team order: wheeled robots, then quads), so any team mix
@@ -17,7 +17,6 @@ from typing import Any
 
 import torch
 from ray.rllib.core.columns import Columns
-from ray.rllib.core.rl_module.apis import SelfSupervisedLossAPI
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from torch import nn
 
@@ -68,8 +67,11 @@ class ResidualSelfAttention(nn.Module):
         return (x * weights).sum(1) / weights.sum(1).clamp(min=1.0)
 
 
-class POCACritic(TorchRLModule, SelfSupervisedLossAPI):
-    """Centralized value V and counterfactual baselines b_i, with its own regression loss.
+class POCACritic(TorchRLModule):
+    """Centralized value V and counterfactual baselines b_i, and their regression loss.
+
+    Its loss is computed on each policy minibatch's rows (by the learner), so the critic
+    and the actors see the same rows and the same number of epochs.
 
     ``model_config``: ``slot_kinds`` (kind index per slot), ``obs_dims`` and ``act_dims``
     (per kind), ``hidden`` (entity size), ``heads`` (attention heads).
@@ -81,11 +83,12 @@ class POCACritic(TorchRLModule, SelfSupervisedLossAPI):
         self.obs_dims, self.act_dims = list(cfg["obs_dims"]), list(cfg["act_dims"])
         h = int(cfg.get("hidden", 128))
         kinds = range(len(self.obs_dims))
-        self.obs_encoders = nn.ModuleList(
-            mlp([self.obs_dims[k], h, h]) if self.obs_dims[k] else nn.Identity() for k in kinds)
-        self.obs_action_encoders = nn.ModuleList(
-            mlp([self.obs_dims[k] + self.act_dims[k], h, h]) if self.obs_dims[k]
-            else nn.Identity() for k in kinds)
+        present = [k for k in kinds if self.obs_dims[k]]
+        self.obs_encoders = nn.ModuleDict(
+            {str(k): mlp([self.obs_dims[k], h, h]) for k in present})
+        self.obs_embeddings = nn.ModuleDict({str(k): nn.Linear(h, h) for k in present})
+        self.obs_action_embeddings = nn.ModuleDict(
+            {str(k): nn.Linear(h + self.act_dims[k], h) for k in present})
         self.attention = ResidualSelfAttention(h, int(cfg.get("heads", 4)))
         self.body = mlp([h + 1, h, h])
         self.head = nn.Linear(h, 1)
@@ -93,17 +96,20 @@ class POCACritic(TorchRLModule, SelfSupervisedLossAPI):
         self._slots_of = {k: [s for s, sk in enumerate(self.slot_kinds) if sk == k]
                           for k in kinds}
 
-    def _embed(self, encoders: nn.ModuleList, group_obs: torch.Tensor,
-               group_act: torch.Tensor | None) -> torch.Tensor:
-        tokens = group_obs.new_zeros(*group_obs.shape[:2], self.hidden)
+    def _tokens(self, group_obs: torch.Tensor, group_act: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Observation tokens and observation+action tokens of every slot."""
+        shape = (*group_obs.shape[:2], self.hidden)
+        obs_tokens, oa_tokens = group_obs.new_zeros(shape), group_obs.new_zeros(shape)
         for k, slots in self._slots_of.items():
             if not slots:
                 continue
-            x = group_obs[:, slots, :self.obs_dims[k]]
-            if group_act is not None:
-                x = torch.cat([x, group_act[:, slots, :self.act_dims[k]]], dim=-1)
-            tokens[:, slots] = encoders[k](x)
-        return tokens
+            key = str(k)
+            enc = self.obs_encoders[key](group_obs[:, slots, :self.obs_dims[k]])
+            obs_tokens[:, slots] = self.obs_embeddings[key](enc)
+            oa_tokens[:, slots] = self.obs_action_embeddings[key](
+                torch.cat([enc, group_act[:, slots, :self.act_dims[k]]], dim=-1))
+        return obs_tokens, oa_tokens
 
     def _pool_to_value(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         pooled = self.attention(tokens, present)
@@ -115,9 +121,8 @@ class POCACritic(TorchRLModule, SelfSupervisedLossAPI):
                              ) -> tuple[torch.Tensor, torch.Tensor]:
         """V(all observations) and b_i(own observation, others' observations and actions)."""
         present = present.bool()
-        obs_tokens = self._embed(self.obs_encoders, group_obs, None)
+        obs_tokens, oa_tokens = self._tokens(group_obs, group_act)
         values = self._pool_to_value(obs_tokens, present)
-        oa_tokens = self._embed(self.obs_action_encoders, group_obs, group_act)
         own = nn.functional.one_hot(self_idx.long(), group_obs.shape[1]).bool().unsqueeze(-1)
         baselines = self._pool_to_value(torch.where(own, obs_tokens, oa_tokens), present)
         return values, baselines
@@ -127,15 +132,13 @@ class POCACritic(TorchRLModule, SelfSupervisedLossAPI):
             batch[C.GROUP_OBS], batch[C.GROUP_ACT], batch[C.SELF_IDX], batch[C.GROUP_MASK])
         return {C.VALUES: values, C.BASELINES: baselines}
 
-    def compute_self_supervised_loss(self, *, learner, module_id, config, batch, fwd_out,
-                                     **kwargs) -> torch.Tensor:
-        eps = float(config.clip_param)
-        mask = batch[Columns.LOSS_MASK]
-        value_loss = trust_region_value_loss(fwd_out[C.VALUES], batch[C.OLD_VALUES],
-                                             batch[C.RETURNS], eps, mask)
-        baseline_loss = trust_region_value_loss(fwd_out[C.BASELINES], batch[C.OLD_BASELINES],
-                                                batch[C.RETURNS], eps, mask)
-        learner.metrics.log_dict({"value_loss": value_loss.detach(),
-                                  "baseline_loss": baseline_loss.detach()},
-                                 key=module_id, window=1)
-        return poca_critic_loss(value_loss, baseline_loss)
+    def loss(self, rows: dict[str, Any], epsilon: float) -> dict[str, torch.Tensor]:
+        """Value and baseline regression on policy rows (ML-Agents' clipped form)."""
+        out = self._forward(rows)
+        mask = rows[Columns.LOSS_MASK]
+        value_loss = trust_region_value_loss(out[C.VALUES], rows[C.OLD_VALUES],
+                                             rows[C.RETURNS], epsilon, mask)
+        baseline_loss = trust_region_value_loss(out[C.BASELINES], rows[C.OLD_BASELINES],
+                                                rows[C.RETURNS], epsilon, mask)
+        return {"value_loss": value_loss, "baseline_loss": baseline_loss,
+                "critic_loss": poca_critic_loss(value_loss, baseline_loss)}
