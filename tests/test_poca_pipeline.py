@@ -38,7 +38,7 @@ def test_every_row_holds_its_own_observation_and_action_at_its_slot(team):
         assert set(idx) == {i for i, a in enumerate(slots) if a.startswith(module_id)}
         own_obs = rows[C.GROUP_OBS].numpy()[np.arange(len(idx)), idx, :obs.shape[1]]
         own_act = rows[C.GROUP_ACT].numpy()[np.arange(len(idx)), idx, :act.shape[1]]
-        np.testing.assert_array_equal(own_obs, obs)
+        np.testing.assert_array_equal(own_obs, obs.astype(np.float16))  # stored as float16
         np.testing.assert_array_equal(own_act, np.clip(act, -1, 1))
         assert rows[C.GROUP_MASK].numpy().min() == 1.0  # every robot acts every step
     assert CRITIC_ID not in batch  # the critic learns on the policy rows themselves

@@ -136,6 +136,7 @@ class POCACritic(TorchRLModule):
                              self_idx: torch.Tensor, present: torch.Tensor
                              ) -> tuple[torch.Tensor, torch.Tensor]:
         """V(all observations) and b_i(own observation, others' observations and actions)."""
+        group_obs, group_act = group_obs.float(), group_act.float()
         present = present.bool()
         obs_tokens, oa_tokens = self._tokens(group_obs, group_act)
         values = self._pool_to_value(obs_tokens, present)
