@@ -4,7 +4,8 @@
 episode counters and metrics. It validates actions, turns per-agent action dicts into
 the simulator's action matrix and the simulator's outputs into per-agent dicts.
 ``reset(options={"scenario": "train:17"})`` switches scenario for domain randomisation
-and meta-learning; ``scenario: random`` draws a new training-distribution scene per reset.
+and meta-learning; ``scenario: train:*`` picks one of the 1000 training scenes per reset
+(worlds are cached) and ``scenario: random`` draws a brand-new scene per reset.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from rl_scan import metrics as M
 from rl_scan.envs.observations import action_spaces, kind_of, observation_spaces
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
 from rl_scan.envs.sim.robots import KINDS
-from rl_scan.envs.sim.scenarios import load_scenario, parse_scenario_name
+from rl_scan.envs.sim.scenarios import N_TRAIN, load_scenario, parse_scenario_name
 from rl_scan.envs.sim.world import World
 
 WORLD_CACHE_SIZE = 64
@@ -40,7 +41,8 @@ class ScanCore:
         self._actions = np.zeros((len(self.agent_ids), 5))
         self.np_random = np.random.default_rng()
         self.scenario_name = self.config.scenario
-        self.world = self._world(self.scenario_name)  # fail fast on a bad scenario
+        first = "train:0" if self.scenario_name == "train:*" else self.scenario_name
+        self.world = self._world(first)  # fail fast on a bad scenario
         self.done = True
 
     # ------------------------------------------------------------------ worlds
@@ -69,7 +71,10 @@ class ScanCore:
         scenario = (options or {}).get("scenario")  # other options are ignored (gymnasium)
         if scenario is not None:
             self.set_scenario(scenario)
-        self.world = self._world(self.scenario_name)
+        name = self.scenario_name
+        if name == "train:*":
+            name = f"train:{int(self.np_random.integers(N_TRAIN))}"
+        self.world = self._world(name)
         obs = self.world.reset(self.np_random)
         self.t = 0
         self.done = False

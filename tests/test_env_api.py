@@ -138,6 +138,19 @@ def test_random_scenario_draws_a_new_scene_per_reset_deterministically():
     assert len(layouts) == 4
 
 
+def test_train_star_picks_a_train_scene_per_reset_from_the_cache():
+    core = ScanCore({"scenario": "train:*"})
+    names = set()
+    for s in range(6):
+        core.reset(seed=s)
+        names.add(core.world.scenario.name)
+    assert len(names) >= 4 and all(n.startswith("train:") and n != "train:*" for n in names)
+    core.reset(seed=2)
+    again = core.world.scenario.name
+    core.reset(seed=2)
+    assert core.world.scenario.name == again  # seeded
+
+
 def test_termination_when_every_cell_is_scanned():
     core = ScanCore({"scenario": ONE_BOX, "max_steps": 300})
     core.reset(seed=0)

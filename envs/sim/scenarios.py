@@ -4,6 +4,7 @@ Named scenarios:
   ``ablation``   the paper's ablation scene: 4 cubes of 6^3 cells (720 cells), fixed layout.
   ``train:N``    N in [0, 1000): the training set, sampled from ``ScenarioDistribution``.
   ``test:N``     N in [0, 5): five held-out scenarios from a separate seed stream.
+  ``train:*``    a random training scenario per reset (domain randomisation over the set).
   a YAML path    objects and (optionally) starts listed by hand; see presets/scenarios/.
 The paper's uncertainty (number and size ~ randint; shape proportions and positions ~
 normal; no overlaps) is the default ``ScenarioDistribution``.
@@ -111,14 +112,14 @@ def parse_scenario_name(name: str) -> str:
         if not 0 <= int(m.group(2)) < limit:
             fail("scenario", name, f"{m.group(1)}:N with 0 <= N < {limit}")
         return f"{m.group(1)}:{int(m.group(2))}"
-    if name in ("ablation", "random") or preset_path(name).is_file():
+    if name in ("ablation", "random", "train:*") or preset_path(name).is_file():
         return name
     if name.endswith((".yaml", ".yml")):
         if not Path(name).is_file():
             raise ConfigError(f"scenario file {name!r} does not exist")
         return name
-    fail("scenario", name, "'ablation', 'random', 'train:N' (0<=N<1000), 'test:N' (0<=N<5) "
-                           "or a path to a scenario .yaml file")
+    fail("scenario", name, "'ablation', 'random', 'train:N' (0<=N<1000), 'train:*', "
+                           "'test:N' (0<=N<5) or a path to a scenario .yaml file")
 
 
 def sample_object(rng: np.random.Generator, dist: ScenarioDistribution,
