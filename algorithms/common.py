@@ -47,5 +47,8 @@ def configure_scan(config: AlgorithmConfig, env_config: dict[str, Any], *,
         config = config.evaluation(
             evaluation_interval=evaluation_interval, evaluation_duration=evaluation_episodes,
             evaluation_duration_unit="episodes", evaluation_num_env_runners=0,
-            evaluation_config=type(config).overrides(explore=False))
+            # Sampled actions, as ML-Agents (and so the paper's curves) evaluate: the env
+            # clips a Gaussian's samples, so a mean beyond +-1 gets no gradient and
+            # mean actions are not the policy that was trained.
+            evaluation_config=type(config).overrides(explore=True))
     return config

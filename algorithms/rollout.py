@@ -54,9 +54,9 @@ def load_actors(checkpoint: Path) -> dict[str, Any]:
 
 
 class PolicyTeam:
-    """A team acting with trained modules: deterministic (mean) actions unless ``explore``."""
+    """A team acting with trained modules: sampled actions, or the mean if not ``explore``."""
 
-    def __init__(self, modules: dict[str, Any], explore: bool = False):
+    def __init__(self, modules: dict[str, Any], explore: bool = True):
         from ray.rllib.core.columns import Columns
 
         self.modules, self.explore, self._obs_key = modules, explore, Columns.OBS

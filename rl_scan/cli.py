@@ -183,7 +183,10 @@ def _checkpoint_team(args: argparse.Namespace):
     ckpt = resolve_checkpoint(args.checkpoint)
     config = make_env_config(deep_merge(run_env_config(ckpt), env_mapping_from_args(args)))
     core = ScanCore(config)
-    team = PolicyTeam(load_actors(ckpt), explore=getattr(args, "explore", False))
+    import torch
+
+    torch.manual_seed(getattr(args, "seed", 0))  # sampled actions are reproducible
+    team = PolicyTeam(load_actors(ckpt), explore=not getattr(args, "deterministic", False))
     return core, team, f"checkpoint {ckpt}"
 
 
@@ -202,7 +205,7 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     greedy = [run_episode(core, GreedyTeam(core), seed=args.seed + i)
               for i in range(args.episodes)] if not args.no_reference else []
     table = Table(title=f"{label}\non {core.scenario_name}, {args.episodes} episodes "
-                        f"({'sampled' if args.explore else 'mean'} actions)")
+                        f"({'mean' if args.deterministic else 'sampled'} actions)")
     for col in ("metric", "mean", "std", "min", "max", "greedy team mean"):
         table.add_column(col, justify="left" if col == "metric" else "right")
     summary = {}
@@ -320,14 +323,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser(
         "evaluate", formatter_class=fmt, help="metrics of a trained team",
-        description="Play episodes with a checkpoint's policies (mean actions) on its run's "
+        description="Play episodes with a checkpoint's policies (sampled actions) on its run's "
                     "env config, or on the scenario/team given here, and print coverage, "
                     "success, steps to 50/80/95 %%, collisions and returns per kind, beside "
                     "the scripted greedy team.")
     ev.add_argument("checkpoint", help="a checkpoint, trial or run folder (newest checkpoint)")
     ev.add_argument("--episodes", type=int, default=10)
     ev.add_argument("--seed", type=int, default=0, help="reset seed of the first episode")
-    ev.add_argument("--explore", action="store_true", help="sample actions instead of the mean")
+    ev.add_argument("--deterministic", action="store_true",
+                    help="act with the policy mean instead of sampling (training evaluates "
+                         "sampled actions, as ML-Agents does)")
     ev.add_argument("--no-reference", action="store_true", help="skip the greedy team")
     ev.add_argument("--json", default=None, help="also write per-episode metrics here")
     add_env_args(ev)
