@@ -31,16 +31,19 @@ def test_every_row_holds_its_own_observation_and_action_at_its_slot(team):
     batch = learner._learner_connector(rl_module=learner.module, batch={}, episodes=episodes,
                                        shared_data={})
     slots = config.poca_team["slots"]
+    table_obs, table_act, present = (t.numpy() for t in learner.module[CRITIC_ID]._table)
+    assert present.min() == 1.0  # every robot acts every step
     for module_id in ("wheeled", "quad"):
         rows = batch[module_id]
         obs, act = rows[Columns.OBS].numpy(), rows[Columns.ACTIONS].numpy()
-        idx = rows[C.SELF_IDX].numpy()
+        idx, step = rows[C.SELF_IDX].numpy(), rows[C.GROUP_ROW].numpy()
         assert set(idx) == {i for i, a in enumerate(slots) if a.startswith(module_id)}
-        own_obs = rows[C.GROUP_OBS].numpy()[np.arange(len(idx)), idx, :obs.shape[1]]
-        own_act = rows[C.GROUP_ACT].numpy()[np.arange(len(idx)), idx, :act.shape[1]]
-        np.testing.assert_array_equal(own_obs, obs.astype(np.float16))  # stored as float16
-        np.testing.assert_array_equal(own_act, np.clip(act, -1, 1))
-        assert rows[C.GROUP_MASK].numpy().min() == 1.0  # every robot acts every step
+        np.testing.assert_array_equal(table_obs[step, idx, :obs.shape[1]], obs)
+        np.testing.assert_array_equal(table_act[step, idx, :act.shape[1]], np.clip(act, -1, 1))
+    # every step of the table is shared by all the robots' rows of that step
+    n_steps = len(table_obs)
+    assert n_steps * len(slots) == len(batch["wheeled"][C.GROUP_ROW]) + len(
+        batch["quad"][C.GROUP_ROW])
     assert CRITIC_ID not in batch  # the critic learns on the policy rows themselves
 
 

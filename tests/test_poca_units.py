@@ -144,7 +144,8 @@ def test_critic_loss_on_rows_is_the_ml_agents_weighting():
     idx = torch.arange(5) % 4
     with torch.no_grad():
         v, b = critic.values_and_baselines(obs, act, idx, present)
-    rows = {C.GROUP_OBS: obs, C.GROUP_ACT: act, C.SELF_IDX: idx, C.GROUP_MASK: present,
+    critic.set_group_table(obs, act, present)
+    rows = {C.GROUP_ROW: torch.arange(5), C.SELF_IDX: idx,
             C.RETURNS: v + 1.0, C.OLD_VALUES: v, C.OLD_BASELINES: b,
             Columns.LOSS_MASK: torch.ones(5)}
     out = critic.loss(rows, epsilon=0.2)

@@ -1,8 +1,7 @@
 """Batch column names POCA adds (RLlib's own columns are ``Columns.*``)."""
 
-GROUP_OBS = "poca_group_obs"  # (rows, slots, max obs dim): every robot's observation
-GROUP_ACT = "poca_group_act"  # (rows, slots, max action dim): every robot's (clipped) action
-GROUP_MASK = "poca_group_mask"  # (rows, slots): robot present at that step
+GROUP_ROW = "poca_group_row"  # (rows,): the row's step in this update's group table
+GROUP_TABLE = "poca_group_table"  # shared_data key: (obs, act, present) per step
 SELF_IDX = "poca_self_idx"  # (rows,): the slot of the row's own robot
 GROUP_REW = "poca_group_rew"  # (rows,): the group reward of the step
 RETURNS = "poca_returns"  # lambda-returns bootstrapped from V

@@ -1,9 +1,11 @@
 """POCA's learner connector pieces.
 
-``AddGroupColumns`` (early, after ``AddOneTsToEpisodesAndTruncate``) copies every robot's
-observation and action at each step into each agent row, plus the row's own slot and the
-group reward, so that every row is self-contained: RLlib minibatches each module's rows
-independently, so cross-agent inputs cannot be joined later (notes/rllib-2.60.md 3.2).
+``AddGroupColumns`` (early, after ``AddOneTsToEpisodesAndTruncate``) builds this update's
+group table (every robot's observation and action at each step, stored once) and gives
+every agent row its step in that table, its own slot and the group reward. RLlib
+minibatches each module's rows independently, so each row must find its team's data on
+its own (notes/rllib-2.60.md 3.2); an index does that without copying the team's
+observations into every robot's row.
 ``POCATargets`` (last, after ``NumpyToTensor``) runs the critic without gradients and
 computes lambda-returns of the group reward bootstrapped from V and the counterfactual
 advantages; the critic later learns on the same policy rows.
@@ -41,9 +43,7 @@ class AddGroupColumns(ConnectorV2):
             raise ValueError("POCA needs every robot to act at every step; episode "
                              f"{ma_episode.id_} has agent chunks of lengths {sorted(lengths)}")
         n, slots = lengths.pop(), len(self.slot_of)
-        # float16 halves the bytes RLlib copies while batching these replicated rows; all
-        # observation entries lie in [-1, 1] (3 significant digits are plenty for a critic).
-        obs = np.zeros((n, slots, self.obs_dim), np.float16)
+        obs = np.zeros((n, slots, self.obs_dim), np.float32)
         act = np.zeros((n, slots, self.act_dim), np.float32)
         present = np.zeros((n, slots), np.float32)
         rew = np.zeros(n, np.float32)
@@ -57,16 +57,24 @@ class AddGroupColumns(ConnectorV2):
             r = np.asarray(sa.get_rewards(slice(0, n)), np.float32)
             # individual rewards sum to the group reward; in team mode all agents hold it
             rew = np.maximum(rew, r) if self.team_reward else rew + r
-        return {C.GROUP_OBS: obs, C.GROUP_ACT: act, C.GROUP_MASK: present, C.GROUP_REW: rew}
+        return {"obs": obs, "act": act, "present": present, "rew": rew}
 
     def __call__(self, *, rl_module, batch: dict[str, Any], episodes, explore=None,
                  shared_data=None, **kwargs) -> Any:
-        groups = {ma.id_: self.group_arrays(ma) for ma in episodes}
+        groups, offsets, start = [], {}, 0
+        for ma in episodes:
+            groups.append(self.group_arrays(ma))
+            offsets[ma.id_] = start
+            start += len(groups[-1]["rew"])
+        table = {k: np.concatenate([g[k] for g in groups]) for k in ("obs", "act", "present",
+                                                                   "rew")}
+        shared_data[C.GROUP_TABLE] = table
         # The same iteration order as RLlib's own pieces keeps every column row-aligned.
         for sa in self.single_agent_episode_iterator(episodes, agents_that_stepped_only=False):
-            group, n = groups[sa.multi_agent_episode_id], len(sa)
-            for column, values in group.items():
-                self.add_n_batch_items(batch, column, values[:n], n, sa)
+            n, first = len(sa), offsets[sa.multi_agent_episode_id]
+            rows = np.arange(first, first + n)
+            self.add_n_batch_items(batch, C.GROUP_ROW, rows, n, sa)
+            self.add_n_batch_items(batch, C.GROUP_REW, table["rew"][rows], n, sa)
             self.add_n_batch_items(batch, C.SELF_IDX, np.full(n, self.slot_of[sa.agent_id]),
                                    n, sa)
         return batch
@@ -80,13 +88,21 @@ class POCATargets(ConnectorV2):
         super().__init__(input_observation_space, input_action_space)
         self.gamma, self.lambda_ = gamma, lambda_
 
-    def __call__(self, *, rl_module, batch: dict[str, Any], episodes, **kwargs) -> Any:
+    def __call__(self, *, rl_module, batch: dict[str, Any], episodes, shared_data=None,
+                 **kwargs) -> Any:
         critic = rl_module[CRITIC_ID]
+        device = next(critic.parameters()).device
+        table = {k: torch.as_tensor(v, device=device)
+                 for k, v in shared_data[C.GROUP_TABLE].items()}
+        critic.set_group_table(table["obs"], table["act"], table["present"])
+        with torch.no_grad():
+            enc = critic.encode(table["obs"])  # once per step, not once per agent row
         for module_id in [m for m in batch if m != CRITIC_ID]:
             rows = batch[module_id]
+            r = rows[C.GROUP_ROW]
             with torch.no_grad():
-                values, baselines = critic.values_and_baselines(
-                    rows[C.GROUP_OBS], rows[C.GROUP_ACT], rows[C.SELF_IDX], rows[C.GROUP_MASK])
+                values, baselines = critic.heads(enc[r], table["act"][r], rows[C.SELF_IDX],
+                                                 table["present"][r])
             np_ = {k: rows[k].cpu().numpy() for k in (C.GROUP_REW, Columns.TERMINATEDS,
                                                        Columns.TRUNCATEDS, Columns.LOSS_MASK)}
             returns = lambda_returns(values.cpu().numpy(), np_[C.GROUP_REW],

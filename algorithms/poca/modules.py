@@ -112,20 +112,31 @@ class POCACritic(TorchRLModule):
                 raise ValueError(f"slots of kind {k} must be contiguous: {self.slot_kinds}")
             self._slots_of[k] = slice(idx[0], idx[-1] + 1) if idx else None
 
-    def _tokens(self, group_obs: torch.Tensor, group_act: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Observation tokens and observation+action tokens of every slot."""
-        shape = (*group_obs.shape[:2], self.hidden)
-        obs_tokens, oa_tokens = group_obs.new_zeros(shape), group_obs.new_zeros(shape)
+    def encode(self, group_obs: torch.Tensor) -> torch.Tensor:
+        """Each slot's observation encoding (the big matmul), (rows, slots, hidden)."""
+        group_obs = group_obs.float()
+        enc = group_obs.new_zeros(*group_obs.shape[:2], self.hidden)
+        for k, slots in self._slots_of.items():
+            if slots is not None:
+                enc[:, slots] = self.obs_encoders[str(k)](group_obs[:, slots, :self.obs_dims[k]])
+        return enc
+
+    def heads(self, enc: torch.Tensor, group_act: torch.Tensor, self_idx: torch.Tensor,
+              present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """V from observation entities; b_i with robot i's entity action-free."""
+        present = present.bool()
+        obs_tokens, oa_tokens = torch.zeros_like(enc), torch.zeros_like(enc)
         for k, slots in self._slots_of.items():
             if slots is None:
                 continue
             key = str(k)
-            enc = self.obs_encoders[key](group_obs[:, slots, :self.obs_dims[k]])
-            obs_tokens[:, slots] = self.obs_embeddings[key](enc)
+            obs_tokens[:, slots] = self.obs_embeddings[key](enc[:, slots])
             oa_tokens[:, slots] = self.obs_action_embeddings[key](
-                torch.cat([enc, group_act[:, slots, :self.act_dims[k]]], dim=-1))
-        return obs_tokens, oa_tokens
+                torch.cat([enc[:, slots], group_act[:, slots, :self.act_dims[k]].float()], -1))
+        values = self._pool_to_value(obs_tokens, present)
+        own = nn.functional.one_hot(self_idx.long(), enc.shape[1]).bool().unsqueeze(-1)
+        baselines = self._pool_to_value(torch.where(own, obs_tokens, oa_tokens), present)
+        return values, baselines
 
     def _pool_to_value(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         pooled = self.attention(tokens, present)
@@ -136,17 +147,22 @@ class POCACritic(TorchRLModule):
                              self_idx: torch.Tensor, present: torch.Tensor
                              ) -> tuple[torch.Tensor, torch.Tensor]:
         """V(all observations) and b_i(own observation, others' observations and actions)."""
-        group_obs, group_act = group_obs.float(), group_act.float()
-        present = present.bool()
-        obs_tokens, oa_tokens = self._tokens(group_obs, group_act)
-        values = self._pool_to_value(obs_tokens, present)
-        own = nn.functional.one_hot(self_idx.long(), group_obs.shape[1]).bool().unsqueeze(-1)
-        baselines = self._pool_to_value(torch.where(own, obs_tokens, oa_tokens), present)
-        return values, baselines
+        return self.heads(self.encode(group_obs), group_act, self_idx, present)
+
+    def set_group_table(self, obs: torch.Tensor, act: torch.Tensor,
+                        present: torch.Tensor) -> None:
+        """This update's per-step team data; rows refer to it by ``GROUP_ROW``.
+
+        One row per env step (not per agent row): the team's observations are stored once
+        instead of once per robot. Transient (not a parameter, not checkpointed).
+        """
+        self._table = (obs, act, present)
 
     def _forward(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        values, baselines = self.values_and_baselines(
-            batch[C.GROUP_OBS], batch[C.GROUP_ACT], batch[C.SELF_IDX], batch[C.GROUP_MASK])
+        obs, act, present = self._table
+        row = batch[C.GROUP_ROW]
+        values, baselines = self.values_and_baselines(obs[row], act[row], batch[C.SELF_IDX],
+                                                      present[row])
         return {C.VALUES: values, C.BASELINES: baselines}
 
     def loss(self, rows: dict[str, Any], epsilon: float) -> dict[str, torch.Tensor]:
