@@ -8,6 +8,7 @@ team >= 95 % coverage on the ablation scene and >= 80 % mean on the five test sc
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import platform
 import resource
@@ -104,19 +105,13 @@ def bench_teams(config: EnvConfig, seeds: int) -> dict[str, Any]:
     """Coverage of the greedy and random teams on the ablation and the test scenarios."""
     out: dict[str, Any] = {}
     for scenario in ["ablation"] + [f"test:{i}" for i in range(N_TEST)]:
-        core = ScanCore(_with(config, scenario=scenario))
+        core = ScanCore(dataclasses.replace(config, scenario=scenario))
         for name, make in (("greedy", GreedyTeam), ("random", RandomTeam)):
             runs = [run_episode(core, make(core), seed=s) for s in range(seeds)]
             out[(scenario, name)] = {k: float(np.nanmean([r[k] for r in runs]))
                                      if not all(np.isnan(r[k]) for r in runs) else float("nan")
                                      for k in runs[0]}
     return out
-
-
-def _with(config: EnvConfig, **changes) -> EnvConfig:
-    import dataclasses
-
-    return dataclasses.replace(config, **changes)
 
 
 def run_bench_env(config: EnvConfig, seconds: float = 3.0, seeds: int = 3,

@@ -30,6 +30,13 @@ EXAMPLES = """examples:
 """
 
 
+def _write_json(path: str, data) -> None:
+    """Write figures as JSON (NaN/numpy values as floats) and say where."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(data, indent=1, default=float))
+    print(f"wrote {path}")
+
+
 def _scenario_cmd(args: argparse.Namespace) -> int:
     import numpy as np
     from rich.console import Console
@@ -111,9 +118,7 @@ def _bench_cmd(args: argparse.Namespace) -> int:
     res = run_bench_env(config, seconds=args.seconds, seeds=args.seeds,
                         pin_core=not args.no_pin)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(res, indent=2, default=float))
-        print(f"wrote {args.json}")
+        _write_json(args.json, res)
     return 0
 
 
@@ -135,9 +140,7 @@ def _bench_train_cmd(args: argparse.Namespace) -> int:
                           train_batch_size=args.batch, minibatch_size=args.minibatch,
                           num_epochs=args.epochs, envs_per_runner=args.envs_per_runner)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(res, indent=2, default=float))
-        print(f"wrote {args.json}")
+        _write_json(args.json, res)
     return 0
 
 
@@ -222,10 +225,7 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
                       *cells, "-" if np.isnan(ref) else f"{ref:.3f}")
     Console().print(table)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"checkpoint": label, "episodes": runs,
-                                               "summary": summary}, indent=1, default=float))
-        print(f"wrote {args.json}")
+        _write_json(args.json, {"checkpoint": label, "episodes": runs, "summary": summary})
     return 0
 
 

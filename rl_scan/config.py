@@ -124,13 +124,6 @@ def _field_default(f: dataclasses.Field) -> Any:
     return None
 
 
-def with_overrides(obj: T, overrides: dict[str, Any] | None) -> T:
-    """Return a copy of config ``obj`` with nested ``overrides`` applied and validated."""
-    if not overrides:
-        return obj
-    return build_config(type(obj), deep_merge(to_dict(obj), overrides))
-
-
 def to_dict(obj: Any) -> Any:
     """Convert a (nested) dataclass config into plain dicts/lists for YAML/JSON."""
     if dataclasses.is_dataclass(obj):

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-FACE_NAMES = ("-x", "+x", "-y", "+y", "-z", "+z")
 FACE_NORMALS = np.array(
     [[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)
 DOWN_FACE = 4

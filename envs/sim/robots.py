@@ -17,9 +17,6 @@ from rl_scan.config import check_range, fail
 KINDS = ("wheeled", "quad")
 WHEELED, QUAD = 0, 1
 ACTION_DIMS = {"wheeled": 3, "quad": 5}
-ACTION_NAMES = {"wheeled": ("forward", "left", "yaw_rate"),
-                "quad": ("forward", "left", "yaw_rate", "up", "pitch_rate")}
-A_FORWARD, A_LEFT, A_YAW, A_UP, A_PITCH = range(5)
 
 
 @dataclass(frozen=True)
