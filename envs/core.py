@@ -11,6 +11,7 @@ and meta-learning; ``scenario: train:*`` picks one of the 1000 training scenes p
 from __future__ import annotations
 
 from collections import OrderedDict
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -131,6 +132,8 @@ class ScanCore:
         self.returns += rewards
         self.collisions += hit
         self.t += 1
+        if self.t == cfg.fault_at_step:
+            self._inject_fault()
         scanned = world.n_scanned
         while self._thresholds and scanned >= self._thresholds[0] * world.n_cells:
             self.steps_to[self._thresholds.pop(0)] = float(self.t)
@@ -144,6 +147,15 @@ class ScanCore:
             for aid in self.agent_ids:
                 infos[aid] = {"episode_metrics": summary}
         return self._split(obs), rew, terminated, truncated, infos
+
+    def _inject_fault(self) -> None:
+        """Raise once (see EnvConfig.fault_at_step): lets tests exercise fault tolerance."""
+        marker = Path(self.config.fault_once_file) if self.config.fault_once_file else None
+        if marker is not None and marker.exists():
+            return
+        if marker is not None:
+            marker.touch()
+        raise RuntimeError(f"injected env fault at step {self.t} (fault_at_step)")
 
     def _split(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         return {aid: obs[i, :self._dims[aid]].copy() for i, aid in enumerate(self.agent_ids)}

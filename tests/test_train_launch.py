@@ -108,3 +108,15 @@ def test_sigkill_then_resume_continues_from_the_last_checkpoint(tmp_path):
     logged = [e["training_iteration"] for e in evals]
     assert logged == sorted(set(logged)) and logged[-1] == 10
     assert restored_from + 1 in logged  # the first iteration after the restore
+
+
+def test_an_env_error_is_survived_through_failure_config(ray_session, tmp_path):
+    """The env raises once mid-run; Tune restores the trial from its checkpoint and goes on."""
+    marker = tmp_path / "crashed"
+    run_dir = train("ppo", {"fault_at_step": 30, "fault_once_file": str(marker)}, "smoke",
+                    results_dir=tmp_path, preset_overrides={"total_env_steps": 1600})
+    assert marker.exists()  # the fault did happen
+    rows = _progress(run_dir)
+    assert int(float(rows[-1]["num_env_steps_sampled_lifetime"])) == 1600
+    evals = json.loads((run_dir / "eval_metrics.json").read_text())
+    assert evals[-1]["training_iteration"] == 4

@@ -65,6 +65,10 @@ class EnvConfig:
     """Voxel edge in metres (assumed)."""
     start_jitter: float = 0.5
     """Uniform noise (metres, per axis) on start positions at each reset (assumed); 0 = fixed."""
+    fault_at_step: int = 0
+    """Testing fault tolerance: raise an error at this step of an episode (0 = never)..."""
+    fault_once_file: str = ""
+    """...once: the error creates this file and does not recur while it exists."""
     wheeled: RobotSpec = field(default_factory=default_wheeled)
     quad: RobotSpec = field(default_factory=default_quad)
     scenario_distribution: ScenarioDistribution = field(default_factory=ScenarioDistribution)
@@ -86,6 +90,7 @@ class EnvConfig:
                 fail(f"{prefix}arena.{axis}", self.arena[i],
                      f"a multiple of cell_size={self.cell_size}")
         check_range(prefix + "start_jitter", self.start_jitter, 0.0, 2.0)
+        check_range(prefix + "fault_at_step", self.fault_at_step, 0)
         if self.quad.altitude > self.arena[2] - self.quad.radius:
             fail(prefix + "quad.altitude", self.quad.altitude,
                  f"at most arena height - radius = {self.arena[2] - self.quad.radius}")
