@@ -24,8 +24,11 @@ MODULES = Path("learner_group") / "learner" / "rl_module"
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
-    """The checkpoint folder for a checkpoint, trial or run folder (newest checkpoint)."""
-    path = Path(path)
+    """The checkpoint folder for a checkpoint, trial or run folder (newest checkpoint).
+
+    Absolute: RLlib's ``from_checkpoint`` reads relative paths as malformed URIs.
+    """
+    path = Path(path).resolve()
     if (path / MODULES).is_dir():
         return path
     found = sorted(path.glob("**/checkpoint_*/"), key=lambda p: (p.stat().st_mtime, p.name))

@@ -51,7 +51,7 @@ def test_ppo_smoke_run_writes_a_complete_run_folder(ppo_run):
               name=run_dir.name)
 
 
-def test_evaluate_and_render_a_checkpoint(ppo_run, tmp_path, capsys):
+def test_evaluate_and_render_a_checkpoint(ppo_run, tmp_path, capsys, monkeypatch):
     """The CLI plays the trained modules on the run's env config (test:2, 50-step episodes)."""
     out_json, gif = tmp_path / "eval.json", tmp_path / "team.gif"
     assert main(["evaluate", str(ppo_run), "--episodes", "2", "--json", str(out_json)]) == 0
@@ -59,7 +59,8 @@ def test_evaluate_and_render_a_checkpoint(ppo_run, tmp_path, capsys):
     assert len(res["episodes"]) == 2
     assert all(e["episode_steps"] == 50 and e["cells_total"] == 207 for e in res["episodes"])
     assert "greedy team mean" in capsys.readouterr().out
-    assert main(["render", str(ppo_run), "--out", str(gif), "--every", "10"]) == 0
+    monkeypatch.chdir(ppo_run.parent)  # a relative run path, as the README uses
+    assert main(["render", ppo_run.name, "--out", str(gif), "--every", "10"]) == 0
     assert Image.open(gif).n_frames == 6
     assert main(["evaluate", str(tmp_path)]) == 2  # no checkpoint there: one-line error
 
