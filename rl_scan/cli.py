@@ -144,6 +144,22 @@ def _bench_train_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_mpe_cmd(args: argparse.Namespace) -> int:
+    from rl_scan.bench_mpe import run_bench_mpe
+
+    algos = [a.strip() for a in args.algos.split(",") if a.strip()]
+    if not algos or any(a not in ("ppo", "poca") for a in algos):
+        raise ConfigError(f"algos={args.algos!r} is invalid: allowed a comma-separated "
+                          "list of ['poca', 'ppo']")
+    for name in ("seeds", "env_steps"):
+        if getattr(args, name) < 1:
+            raise ConfigError(f"{name}={getattr(args, name)} is invalid: allowed an integer >= 1")
+    res = run_bench_mpe(algos, args.seeds, args.env_steps)
+    if args.json:
+        _write_json(args.json, res)
+    return 0
+
+
 def _render_cmd(args: argparse.Namespace) -> int:
     from rl_scan.env_args import env_config_from_args
     from rl_scan.envs.core import ScanCore
@@ -298,6 +314,16 @@ def build_parser() -> argparse.ArgumentParser:
     btrain.add_argument("--json", default=None, help="also write the figures to this JSON file")
     add_env_args(btrain)
     btrain.set_defaults(func=_bench_train_cmd)
+    bmpe = bench_sub.add_parser(
+        "mpe", formatter_class=fmt, help="POCA vs PPO on PettingZoo MPE simple_spread_v3",
+        description="External check: train each algorithm on simple_spread_v3 (mpe2, 3 "
+                    "agents, continuous actions) with the same actor size, budget and seeds, "
+                    "and print the final mean episode returns.")
+    bmpe.add_argument("--algos", default="ppo,poca", help="comma-separated algorithms")
+    bmpe.add_argument("--seeds", type=int, default=3)
+    bmpe.add_argument("--env-steps", type=int, default=100_000, help="budget per run")
+    bmpe.add_argument("--json", default=None, help="also write curves and figures here")
+    bmpe.set_defaults(func=_bench_mpe_cmd)
 
     tr = sub.add_parser(
         "train", formatter_class=fmt, help="train POCA or PPO through Ray Tune",

@@ -29,16 +29,29 @@ from rl_scan.envs.sim.env_config import make_env_config
 from rl_scan.envs.sim.robots import KINDS
 
 
+def layout_from_spaces(agent_ids: list[str], observation_spaces: dict, action_spaces: dict,
+                       module_of, module_ids: list[str] | None = None,
+                       team_reward: bool = False) -> dict[str, Any]:
+    """Critic slots for any multi-agent env whose agents all act every step.
+
+    ``module_of(agent_id)`` gives the policy module (robot kind) of an agent; agents of
+    one module must be contiguous in ``agent_ids`` and share observation/action sizes.
+    """
+    modules = module_ids or sorted({module_of(a) for a in agent_ids})
+    dims = {module_of(a): (observation_spaces[a].shape[0], action_spaces[a].shape[0])
+            for a in agent_ids}
+    return {"slots": list(agent_ids), "kinds": list(modules),
+            "slot_kinds": [modules.index(module_of(a)) for a in agent_ids],
+            "obs_dims": [dims.get(m, (0, 0))[0] for m in modules],
+            "act_dims": [dims.get(m, (0, 0))[1] for m in modules],
+            "team_reward": team_reward}
+
+
 def team_layout(env_config: dict[str, Any]) -> dict[str, Any]:
-    """Critic slots of an env config: agent ids in team order, their kinds, sizes per kind."""
+    """Critic slots of a scanning env config (team order: wheeled robots, then quads)."""
     cfg = make_env_config(env_config)
-    obs, act = observation_spaces(cfg), action_spaces(cfg)
-    dims = {kind_of(a): (obs[a].shape[0], act[a].shape[0]) for a in obs}
-    return {"slots": list(cfg.team.agent_ids),
-            "slot_kinds": [KINDS.index(kind_of(a)) for a in cfg.team.agent_ids],
-            "obs_dims": [dims.get(k, (0, 0))[0] for k in KINDS],
-            "act_dims": [dims.get(k, (0, 0))[1] for k in KINDS],
-            "team_reward": cfg.reward_mode == "team"}
+    return layout_from_spaces(cfg.team.agent_ids, observation_spaces(cfg), action_spaces(cfg),
+                              kind_of, list(KINDS), team_reward=cfg.reward_mode == "team")
 
 
 class POCAConfig(PPOConfig):
@@ -83,7 +96,7 @@ class POCAConfig(PPOConfig):
     def module_specs(self) -> MultiRLModuleSpec:
         """One actor per robot kind in the team and the learner-only critic."""
         team = self.poca_team
-        kinds = sorted({KINDS[k] for k in team["slot_kinds"]})
+        kinds = sorted({team["kinds"][k] for k in team["slot_kinds"]})
         placeholder = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)  # the critic has no agent
         specs = {kind: RLModuleSpec(module_class=GaussianActor,
                                     model_config={"hiddens": self.actor_hiddens})
