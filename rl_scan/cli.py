@@ -122,16 +122,21 @@ def _bench_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_algos(text: str, allowed) -> list[str]:
+    """'ppo,poca' -> ['ppo', 'poca'], each one of ``allowed``."""
+    algos = [a.strip() for a in text.split(",") if a.strip()]
+    if not algos or any(a not in allowed for a in algos):
+        raise ConfigError(f"algos={text!r} is invalid: allowed a comma-separated list of "
+                          f"{sorted(allowed)}")
+    return algos
+
+
 def _bench_train_cmd(args: argparse.Namespace) -> int:
     from rl_scan.bench_train import run_bench_train
     from rl_scan.env_args import env_config_from_args, env_mapping_from_args
     from rl_scan.tuning.launch import ALGORITHMS
 
-    algos = [a.strip() for a in args.algos.split(",") if a.strip()]
-    for a in algos:
-        if a not in ALGORITHMS:
-            raise ConfigError(f"algos={args.algos!r} is invalid: allowed a comma-separated "
-                              f"list of {sorted(ALGORITHMS)}")
+    algos = _parse_algos(args.algos, ALGORITHMS)
     for name in ("iterations", "batch", "minibatch", "epochs", "envs_per_runner"):
         if getattr(args, name) < 1:
             raise ConfigError(f"{name}={getattr(args, name)} is invalid: allowed an integer >= 1")
@@ -147,10 +152,7 @@ def _bench_train_cmd(args: argparse.Namespace) -> int:
 def _bench_mpe_cmd(args: argparse.Namespace) -> int:
     from rl_scan.bench_mpe import run_bench_mpe
 
-    algos = [a.strip() for a in args.algos.split(",") if a.strip()]
-    if not algos or any(a not in ("ppo", "poca") for a in algos):
-        raise ConfigError(f"algos={args.algos!r} is invalid: allowed a comma-separated "
-                          "list of ['poca', 'ppo']")
+    algos = _parse_algos(args.algos, ("poca", "ppo"))
     for name in ("seeds", "env_steps"):
         if getattr(args, name) < 1:
             raise ConfigError(f"{name}={getattr(args, name)} is invalid: allowed an integer >= 1")
