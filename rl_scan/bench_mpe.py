@@ -31,7 +31,7 @@ def _module(agent_id: str, *args, **kwargs) -> str:
 
 
 def mpe_config(algo: str, seed: int, *, train_batch_size: int, minibatch_size: int,
-               num_epochs: int, hiddens: list[int]):
+               num_epochs: int, hiddens: list[int], value_clip: float | None = None):
     """The AlgorithmConfig for ``algo`` ('ppo' or 'poca') on simple_spread."""
     from ray.rllib.algorithms.ppo import PPOConfig
     from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
@@ -46,7 +46,7 @@ def mpe_config(algo: str, seed: int, *, train_batch_size: int, minibatch_size: i
         config = POCAConfig().poca(
             team=layout_from_spaces(ids, {a: probe.observation_space(a) for a in ids},
                                     {a: probe.action_space(a) for a in ids}, _module),
-            actor_hiddens=hiddens, critic_hidden=hiddens[-1])
+            actor_hiddens=hiddens, critic_hidden=hiddens[-1], value_clip=value_clip)
         config = config.rl_module(rl_module_spec=config.module_specs())
     else:
         config = PPOConfig().rl_module(model_config=DefaultModelConfig(

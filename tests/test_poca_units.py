@@ -91,7 +91,8 @@ def test_full_policy_module_loss_on_a_tiny_batch():
         entropy_coeff_schedulers={"quad": SimpleNamespace(get_current_value=lambda: beta)},
         metrics=SimpleNamespace(log_dict=lambda *a, **k: None), module={"critic": critic})
     loss = POCATorchLearner.compute_loss_for_module(
-        fake, module_id="quad", config=SimpleNamespace(clip_param=0.2), batch=batch,
+        fake, module_id="quad", config=SimpleNamespace(clip_param=0.2, value_clip=None),
+        batch=batch,
         fwd_out=fwd)
     entropy = 2 * 0.5 * (math.log(2 * math.pi) + 1) + math.log(2.0)
     expected = -(2 * math.exp(0.045) + 2) / 2 - beta * entropy + critic_loss

@@ -61,7 +61,8 @@ class POCATorchLearner(TorchLearner):
                                           float(config.clip_param), mask)
         entropy = masked_mean(gaussian_entropy(log_std), mask)
         beta = self.entropy_coeff_schedulers[module_id].get_current_value()
-        critic = self.module[CRITIC_ID].loss(batch, float(config.clip_param))
+        clip = config.value_clip if config.value_clip is not None else config.clip_param
+        critic = self.module[CRITIC_ID].loss(batch, float(clip))
         self.metrics.log_dict({"policy_loss": policy_loss.detach(),
                                "entropy": entropy.detach(), "entropy_coeff": beta,
                                **{k: v.detach() for k, v in critic.items()}},

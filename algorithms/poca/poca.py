@@ -70,10 +70,18 @@ class POCAConfig(PPOConfig):
         self.actor_hiddens = list(ACTOR_HIDDENS)
         self.critic_hidden = 128
         self.critic_heads = 4
+        self.value_clip: float | None = None  # None: clip_param, as ML-Agents does
 
     def poca(self, *, team: dict[str, Any] = NotProvided, actor_hiddens=NotProvided,
-             critic_hidden: int = NotProvided, critic_heads: int = NotProvided) -> POCAConfig:
-        """POCA-specific settings; ``team`` comes from ``team_layout(env_config)``."""
+             critic_hidden: int = NotProvided, critic_heads: int = NotProvided,
+             value_clip: float | None = NotProvided) -> POCAConfig:
+        """POCA-specific settings; ``team`` comes from ``team_layout(env_config)``.
+
+        ``value_clip``: how far V and b_i may move from their collection-time values per
+        update in the clipped regression (None: ``clip_param``, as ML-Agents; ``inf``: off).
+        """
+        if value_clip is not NotProvided:
+            self.value_clip = None if value_clip is None else float(value_clip)
         if team is not NotProvided:
             self.poca_team = dict(team)
         if actor_hiddens is not NotProvided:
