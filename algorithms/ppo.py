@@ -12,6 +12,7 @@ from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 
 from rl_scan.algorithms.common import ACTOR_HIDDENS, configure_scan
+from rl_scan.algorithms.optim import FusedAdamPPOTorchLearner
 
 
 def ppo_config(env_config: dict[str, Any], *, train_batch_size: int, minibatch_size: int,
@@ -24,7 +25,8 @@ def ppo_config(env_config: dict[str, Any], *, train_batch_size: int, minibatch_s
             .rl_module(model_config=DefaultModelConfig(
                 fcnet_hiddens=list(ACTOR_HIDDENS), fcnet_activation="relu",
                 vf_share_layers=False))
-            .training(train_batch_size_per_learner=train_batch_size,
+            .training(learner_class=FusedAdamPPOTorchLearner,
+                      train_batch_size_per_learner=train_batch_size,
                       minibatch_size=minibatch_size, num_epochs=num_epochs, lr=lr,
                       gamma=gamma, lambda_=lambda_, clip_param=clip_param,
                       entropy_coeff=entropy_coeff))

@@ -31,7 +31,8 @@ def test_every_row_holds_its_own_observation_and_action_at_its_slot(team):
     batch = learner._learner_connector(rl_module=learner.module, batch={}, episodes=episodes,
                                        shared_data={})
     slots = config.poca_team["slots"]
-    table_obs, table_act, present = (t.numpy() for t in learner.module[CRITIC_ID]._table)
+    table = {k: t.numpy() for k, t in learner.module[CRITIC_ID]._table.items()}
+    table_obs, table_act, present = table["obs"], table["act"], table["present"]
     assert present.min() == 1.0  # every robot acts every step
     for module_id in ("wheeled", "quad"):
         rows = batch[module_id]
@@ -40,11 +41,22 @@ def test_every_row_holds_its_own_observation_and_action_at_its_slot(team):
         assert set(idx) == {i for i, a in enumerate(slots) if a.startswith(module_id)}
         np.testing.assert_array_equal(table_obs[step, idx, :obs.shape[1]], obs)
         np.testing.assert_array_equal(table_act[step, idx, :act.shape[1]], np.clip(act, -1, 1))
+        # the critic's per-step targets are the rows' own (same group return for all robots)
+        np.testing.assert_array_equal(table["returns"][step], rows[C.RETURNS].numpy())
+        np.testing.assert_array_equal(table["old_baselines"][step, idx],
+                                      rows[C.OLD_BASELINES].numpy())
     # every step of the table is shared by all the robots' rows of that step
     n_steps = len(table_obs)
     assert n_steps * len(slots) == len(batch["wheeled"][C.GROUP_ROW]) + len(
         batch["quad"][C.GROUP_ROW])
-    assert CRITIC_ID not in batch  # the critic learns on the policy rows themselves
+    assert CRITIC_ID not in batch  # the critic learns on the group table instead
+    # its minibatches: 32-row module minibatches over the largest module's rows take
+    # ceil(valid steps * 32 / largest rows) steps, so both pass equally often
+    largest = max(len(batch[m][C.GROUP_ROW]) for m in ("wheeled", "quad"))
+    valid = int(sum(batch["quad"][Columns.LOSS_MASK].numpy())) // team[1]
+    schedule = learner.module[CRITIC_ID].minibatches
+    assert len(schedule.steps) == valid
+    assert schedule.size == int(np.ceil(valid * 32 / largest))
 
 
 def test_targets_are_lambda_returns_of_the_group_reward_minus_baselines():

@@ -76,7 +76,7 @@ def test_standardize_uses_valid_rows_only():
 
 
 def test_full_policy_module_loss_on_a_tiny_batch():
-    """compute_loss_for_module = clipped loss - beta * entropy + critic loss, by hand."""
+    """compute_loss_for_module = clipped loss - beta * entropy, by hand."""
     log_std = torch.tensor([[0.0, math.log(2.0)]])
     # old mean 0, new mean 0.1 on dim 0; action (0.5, 0) ->
     # dim 0: logp_new - logp_old = -(.4^2 - .5^2)/2 = .045 -> r = e^.045 = 1.046 (< 1.2)
@@ -85,17 +85,16 @@ def test_full_policy_module_loss_on_a_tiny_batch():
     batch = {Columns.ACTION_DIST_INPUTS: torch.cat([torch.zeros(1, 2), log_std], -1),
              Columns.ACTIONS: torch.tensor([[0.5, 0.0]]),
              Columns.LOSS_MASK: torch.ones(1), Postprocessing.ADVANTAGES: torch.tensor([2.0])}
-    beta, critic_loss = 0.005, 0.75  # the critic's own loss is checked separately
-    critic = SimpleNamespace(loss=lambda rows, eps: {"critic_loss": torch.tensor(critic_loss)})
+    beta = 0.005  # the critic's own loss is checked separately
     fake = SimpleNamespace(
         entropy_coeff_schedulers={"quad": SimpleNamespace(get_current_value=lambda: beta)},
-        metrics=SimpleNamespace(log_dict=lambda *a, **k: None), module={"critic": critic})
+        metrics=SimpleNamespace(log_dict=lambda *a, **k: None))
     loss = POCATorchLearner.compute_loss_for_module(
         fake, module_id="quad", config=SimpleNamespace(clip_param=0.2, value_clip=None),
         batch=batch,
         fwd_out=fwd)
     entropy = 2 * 0.5 * (math.log(2 * math.pi) + 1) + math.log(2.0)
-    expected = -(2 * math.exp(0.045) + 2) / 2 - beta * entropy + critic_loss
+    expected = -(2 * math.exp(0.045) + 2) / 2 - beta * entropy
     assert loss.item() == pytest.approx(expected, abs=1e-5)
     assert gaussian_entropy(log_std).item() == pytest.approx(entropy, abs=1e-6)
 
@@ -139,24 +138,63 @@ def test_baseline_ignores_own_action_but_not_teammates(slot_kinds):
         assert not torch.allclose(b, b3, atol=1e-6)
 
 
-def test_critic_loss_on_rows_is_the_ml_agents_weighting():
+def test_critic_loss_on_table_steps_is_the_ml_agents_weighting():
     critic = _critic([0, 0, 1, 1])
     obs, act, present = _group(4)
-    idx = torch.arange(5) % 4
+    present[1, 3] = 0.0  # one robot absent at step 1: its baseline is not regressed
     with torch.no_grad():
-        v, b = critic.values_and_baselines(obs, act, idx, present)
-    critic.set_group_table(obs, act, present)
-    rows = {C.GROUP_ROW: torch.arange(5), C.SELF_IDX: idx,
-            C.RETURNS: v + 1.0, C.OLD_VALUES: v, C.OLD_BASELINES: b,
-            Columns.LOSS_MASK: torch.ones(5)}
-    out = critic.loss(rows, epsilon=0.2)
+        v, b = critic.group_heads(critic.encode(obs), act, present)
+    critic.set_group_table(obs=obs, act=act, present=present, returns=v + 1.0,
+                           old_values=v, old_baselines=b)
+    steps = torch.tensor([0, 1, 3])
+    out = critic.loss(steps, epsilon=0.2)
     # unchanged weights (v = v_old, b = b_old): clipping changes nothing, so the losses
-    # are the plain squared errors of both heads against the same return G = v + 1
+    # are the plain squared errors of both heads against the same return G = v + 1,
+    # the baseline one averaged over the 11 present (step, robot) pairs
     assert out["value_loss"].item() == pytest.approx(1.0, abs=1e-5)
-    expected_b = ((v + 1.0 - b) ** 2).mean().item()
+    err = (v[steps, None] + 1.0 - b[steps]) ** 2
+    expected_b = (err.sum() - err[1, 3]).item() / 11
     assert out["baseline_loss"].item() == pytest.approx(expected_b, abs=1e-5)
     assert out["critic_loss"].item() == pytest.approx(0.5 * (1.0 + 0.5 * expected_b),
                                                       abs=1e-5)
+
+
+def test_group_heads_equal_one_attention_pass_per_robot():
+    """The shared-projection baselines equal attending over each robot's own sequence."""
+    critic = _critic([0, 1, 1, 1])
+    obs, act, present = _group(4)
+    present[2, 0] = 0.0
+    enc = critic.encode(obs)
+    v, b = critic.group_heads(enc, act, present)
+    obs_tok, oa_tok = torch.zeros_like(enc), torch.zeros_like(enc)
+    for k, slots in critic._slots_of.items():
+        obs_tok[:, slots] = critic.obs_embeddings[str(k)](enc[:, slots])
+        oa_tok[:, slots] = critic.obs_action_embeddings[str(k)](
+            torch.cat([enc[:, slots], act[:, slots, :critic.act_dims[k]]], -1))
+
+    def value(tokens):
+        pooled = critic.attention(tokens, present.bool())
+        count = 2.0 * present.sum(1, keepdim=True) / 4 - 1.0
+        return critic.head(critic.body(torch.cat([pooled, count], -1))).squeeze(-1)
+
+    assert torch.allclose(v, value(obs_tok), atol=1e-6)
+    for i in range(4):
+        tokens = oa_tok.clone()
+        tokens[:, i] = obs_tok[:, i]
+        assert torch.allclose(b[:, i], value(tokens), atol=1e-6)
+
+
+def test_group_minibatches_pass_over_every_step_once_per_pass():
+    from rl_scan.algorithms.poca.connectors import GroupMinibatches
+
+    torch.manual_seed(0)
+    steps = torch.tensor([0, 2, 3, 5, 7, 8, 9])
+    schedule = GroupMinibatches(steps, 3)
+    drawn = torch.cat([schedule.next() for _ in range(7)])  # 21 = 3 passes of 7
+    assert all(len(schedule.next()) == 3 for _ in range(2))
+    for p in range(3):
+        assert sorted(drawn[7 * p:7 * p + 7].tolist()) == steps.tolist()
+    assert len(GroupMinibatches(steps[:0], 4).next()) == 0
 
 
 def test_critic_ignores_padding_and_absent_robots():

@@ -20,6 +20,7 @@ from ray.rllib.utils.annotations import override
 from ray.rllib.utils.lambda_defaultdict import LambdaDefaultDict
 from ray.rllib.utils.schedules.scheduler import Scheduler
 
+from rl_scan.algorithms.optim import FusedAdamMixin
 from rl_scan.algorithms.poca.connectors import AddGroupColumns, POCATargets
 from rl_scan.algorithms.poca.losses import (
     clipped_policy_loss,
@@ -30,7 +31,7 @@ from rl_scan.algorithms.poca.losses import (
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 
 
-class POCATorchLearner(TorchLearner):
+class POCATorchLearner(FusedAdamMixin, TorchLearner):
     """Learner for POCAConfig (see the package doc for the algorithm)."""
 
     @override(TorchLearner)
@@ -46,7 +47,21 @@ class POCATorchLearner(TorchLearner):
                 slots=team["slots"], obs_dim=max(team["obs_dims"]),
                 act_dim=max(team["act_dims"]), team_reward=team["team_reward"]))
             self._learner_connector.prepend(AddOneTsToEpisodesAndTruncate())
-            self._learner_connector.append(POCATargets(gamma=cfg.gamma, lambda_=cfg.lambda_))
+            self._learner_connector.append(POCATargets(
+                gamma=cfg.gamma, lambda_=cfg.lambda_, minibatch_size=cfg.minibatch_size))
+
+    @override(TorchLearner)
+    def compute_losses(self, *, fwd_out: dict[str, Any], batch: dict[str, Any]
+                       ) -> dict[str, Any]:
+        losses = super().compute_losses(fwd_out=fwd_out, batch=batch)
+        critic = self.module[CRITIC_ID]
+        clip = self.config.value_clip
+        out = critic.loss(critic.minibatches.next(),
+                          float(clip if clip is not None else self.config.clip_param))
+        self.metrics.log_dict({k: v.detach() for k, v in out.items()}, key=CRITIC_ID,
+                              window=1)
+        losses[CRITIC_ID] = out["critic_loss"]
+        return losses
 
     @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id: str, config, batch: dict[str, Any],
@@ -61,13 +76,10 @@ class POCATorchLearner(TorchLearner):
                                           float(config.clip_param), mask)
         entropy = masked_mean(gaussian_entropy(log_std), mask)
         beta = self.entropy_coeff_schedulers[module_id].get_current_value()
-        clip = config.value_clip if config.value_clip is not None else config.clip_param
-        critic = self.module[CRITIC_ID].loss(batch, float(clip))
         self.metrics.log_dict({"policy_loss": policy_loss.detach(),
-                               "entropy": entropy.detach(), "entropy_coeff": beta,
-                               **{k: v.detach() for k, v in critic.items()}},
+                               "entropy": entropy.detach(), "entropy_coeff": beta},
                               key=module_id, window=1)
-        return policy_loss - beta * entropy + critic["critic_loss"]
+        return policy_loss - beta * entropy
 
     @override(TorchLearner)
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:

@@ -55,7 +55,8 @@ class ResidualSelfAttention(nn.Module):
     """LayerNorm -> multi-head self-attention (masked keys) -> residual -> LayerNorm -> pool.
 
     Written out with einsum: with a handful of entities per row it is several times faster
-    than ``nn.MultiheadAttention`` on CPU.
+    than ``nn.MultiheadAttention`` on CPU. ``project`` and ``attend`` are separate so that
+    token sequences assembled from the same tokens (the baselines') share one projection.
     """
 
     def __init__(self, size: int, heads: int):
@@ -66,10 +67,15 @@ class ResidualSelfAttention(nn.Module):
         self.norm_in, self.norm_out = nn.LayerNorm(size), nn.LayerNorm(size)
         self.qkv, self.out = nn.Linear(size, 3 * size), nn.Linear(size, size)
 
-    def forward(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+    def project(self, tokens: torch.Tensor) -> torch.Tensor:
+        """Per-token query, key and value, (..., 3 * size)."""
+        return self.qkv(self.norm_in(tokens))
+
+    def attend(self, tokens: torch.Tensor, qkv: torch.Tensor,
+               present: torch.Tensor) -> torch.Tensor:
+        """Pooled output for token sequences (b, n, size) and their projections."""
         b, n, size = tokens.shape
-        q, k, v = self.qkv(self.norm_in(tokens)).view(b, n, 3, self.heads,
-                                                       self.head_dim).unbind(2)
+        q, k, v = qkv.view(b, n, 3, self.heads, self.head_dim).unbind(2)
         logits = torch.einsum("bqhd,bkhd->bhqk", q, k) / self.head_dim ** 0.5
         logits = logits.masked_fill(~present[:, None, None, :], -1e6)  # ML-Agents' mask value
         attended = torch.einsum("bhqk,bkhd->bqhd", logits.softmax(-1), v).reshape(b, n, size)
@@ -77,12 +83,51 @@ class ResidualSelfAttention(nn.Module):
         weights = present.unsqueeze(-1).to(x.dtype)
         return (x * weights).sum(1) / weights.sum(1).clamp(min=1.0)
 
+    def forward(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        return self.attend(tokens, self.project(tokens), present)
+
+    def attend_each_own(self, own: torch.Tensor, other: torch.Tensor, own_qkv: torch.Tensor,
+                        other_qkv: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        """Pooled output of every sequence i = (slot i: ``own``, other slots: ``other``).
+
+        Equal to ``attend`` on each of the n sequences, (b, n, size) -> (b, n, size), but
+        never builds the n x n token sequences: the logits are picked from the four
+        own/other products and the values split into "other" plus slot i's correction.
+        """
+        b, n, size = own.shape
+        h, d = self.heads, self.head_dim
+        qo, ko, vo = own_qkv.view(b, n, 3, h, d).unbind(2)
+        qx, kx, vx = other_qkv.view(b, n, 3, h, d).unbind(2)
+        eye = torch.eye(n, dtype=torch.bool, device=own.device)
+
+        def products(q, k):  # (b, 1, h, query, key)
+            return torch.einsum("bqhd,bkhd->bhqk", q, k).unsqueeze(1)
+
+        query_is_i = eye[None, :, None, :, None]  # (1, i, 1, query, 1)
+        key_is_i = eye[None, :, None, None, :]  # (1, i, 1, 1, key)
+        logits = torch.where(query_is_i,
+                             torch.where(key_is_i, products(qo, ko), products(qo, kx)),
+                             torch.where(key_is_i, products(qx, ko), products(qx, kx)))
+        logits = logits / d ** 0.5
+        logits = logits.masked_fill(~present[:, None, None, None, :], -1e6)
+        weights = logits.softmax(-1)  # (b, i, h, query, key)
+        attended = (torch.einsum("bihqk,bkhd->biqhd", weights, vx)
+                    + torch.einsum("bihq,bihd->biqhd", torch.diagonal(weights, dim1=1, dim2=4)
+                                   .permute(0, 3, 1, 2), vo - vx))
+        tokens = other.unsqueeze(1) + eye[None, :, :, None] * (own - other).unsqueeze(1)
+        x = self.norm_out(tokens + self.out(attended.reshape(b, n, n, size)))
+        mask = present[:, None, :, None].to(x.dtype)
+        return (x * mask).sum(2) / mask.sum(2).clamp(min=1.0)
+
 
 class POCACritic(TorchRLModule):
     """Centralized value V and counterfactual baselines b_i, and their regression loss.
 
-    Its loss is computed on each policy minibatch's rows (by the learner), so the critic
-    and the actors see the same rows and the same number of epochs.
+    It works on the update's group table (one row per env step, every robot's observation
+    and action): one pass gives V and every robot's baseline for a step, sharing the
+    observation encodings and attention projections among them. Its loss runs on group
+    minibatches sized so that it sees every step ``num_epochs`` times per update, like the
+    actors see their rows (see ``learner.py``).
 
     ``model_config``: ``slot_kinds`` (kind index per slot), ``obs_dims`` and ``act_dims``
     (per kind), ``hidden`` (entity size), ``heads`` (attention heads).
@@ -104,74 +149,83 @@ class POCACritic(TorchRLModule):
         self.body = mlp([h + 1, h, h])
         self.head = nn.Linear(h, 1)
         self.hidden = h
-        # Slots of one kind are contiguous (team order): slicing them makes views, not copies.
+        self._table: dict[str, torch.Tensor] = {}
+        # Slots of one kind are contiguous (team order): each kind's slots are one slice,
+        # and the kinds' outputs concatenate in slot order (no scatter into a zero tensor).
         self._slots_of = {}
         for k in kinds:
             idx = [s for s, sk in enumerate(self.slot_kinds) if sk == k]
             if idx and idx != list(range(idx[0], idx[-1] + 1)):
                 raise ValueError(f"slots of kind {k} must be contiguous: {self.slot_kinds}")
             self._slots_of[k] = slice(idx[0], idx[-1] + 1) if idx else None
+        self._kind_blocks = sorted(((sl, k) for k, sl in self._slots_of.items() if sl),
+                                   key=lambda block: block[0].start)
 
     def encode(self, group_obs: torch.Tensor) -> torch.Tensor:
-        """Each slot's observation encoding (the big matmul), (rows, slots, hidden)."""
-        group_obs = group_obs.float()
-        enc = group_obs.new_zeros(*group_obs.shape[:2], self.hidden)
-        for k, slots in self._slots_of.items():
-            if slots is not None:
-                enc[:, slots] = self.obs_encoders[str(k)](group_obs[:, slots, :self.obs_dims[k]])
-        return enc
+        """Each slot's observation encoding (the big matmul), (steps, slots, hidden)."""
+        return torch.cat([self.obs_encoders[str(k)](group_obs[:, sl, :self.obs_dims[k]].float())
+                          for sl, k in self._kind_blocks], dim=1)
 
-    def heads(self, enc: torch.Tensor, group_act: torch.Tensor, self_idx: torch.Tensor,
-              present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """V from observation entities; b_i with robot i's entity action-free."""
+    def group_heads(self, enc: torch.Tensor, group_act: torch.Tensor, present: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """V per step (steps,) and every slot's baseline b_i (steps, slots).
+
+        V attends over all observation entities; b_i over robot i's observation entity and
+        the others' observation+action entities, so b_i never sees robot i's own action.
+        """
         present = present.bool()
-        obs_tokens, oa_tokens = torch.zeros_like(enc), torch.zeros_like(enc)
-        for k, slots in self._slots_of.items():
-            if slots is None:
-                continue
-            key = str(k)
-            obs_tokens[:, slots] = self.obs_embeddings[key](enc[:, slots])
-            oa_tokens[:, slots] = self.obs_action_embeddings[key](
-                torch.cat([enc[:, slots], group_act[:, slots, :self.act_dims[k]].float()], -1))
-        values = self._pool_to_value(obs_tokens, present)
-        own = nn.functional.one_hot(self_idx.long(), enc.shape[1]).bool().unsqueeze(-1)
-        baselines = self._pool_to_value(torch.where(own, obs_tokens, oa_tokens), present)
-        return values, baselines
-
-    def _pool_to_value(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
-        pooled = self.attention(tokens, present)
-        count = 2.0 * present.sum(1, keepdim=True).to(pooled.dtype) / present.shape[1] - 1.0
-        return self.head(self.body(torch.cat([pooled, count], dim=-1))).squeeze(-1)
+        obs_tokens = torch.cat([self.obs_embeddings[str(k)](enc[:, sl])
+                                for sl, k in self._kind_blocks], dim=1)
+        oa_tokens = torch.cat([self.obs_action_embeddings[str(k)](torch.cat(
+            [enc[:, sl], group_act[:, sl, :self.act_dims[k]].float()], -1))
+            for sl, k in self._kind_blocks], dim=1)
+        obs_qkv = self.attention.project(obs_tokens)
+        pooled_v = self.attention.attend(obs_tokens, obs_qkv, present)
+        # One sequence per robot i: i's observation entity, the others' obs+action ones.
+        pooled_b = self.attention.attend_each_own(obs_tokens, oa_tokens, obs_qkv,
+                                                  self.attention.project(oa_tokens), present)
+        count = 2.0 * present.sum(1, keepdim=True).to(enc.dtype) / present.shape[1] - 1.0
+        pooled = torch.cat([pooled_v.unsqueeze(1), pooled_b], dim=1)  # (steps, 1 + slots, h)
+        out = self.head(self.body(torch.cat(
+            [pooled, count.unsqueeze(1).expand(-1, pooled.shape[1], -1)], dim=-1))).squeeze(-1)
+        return out[:, 0], out[:, 1:]
 
     def values_and_baselines(self, group_obs: torch.Tensor, group_act: torch.Tensor,
                              self_idx: torch.Tensor, present: torch.Tensor
                              ) -> tuple[torch.Tensor, torch.Tensor]:
-        """V(all observations) and b_i(own observation, others' observations and actions)."""
-        return self.heads(self.encode(group_obs), group_act, self_idx, present)
+        """Per row: V(all observations) and b_i(own observation, others' obs and actions)."""
+        values, baselines = self.group_heads(self.encode(group_obs), group_act, present)
+        return values, baselines.gather(1, self_idx.long().unsqueeze(1)).squeeze(1)
 
-    def set_group_table(self, obs: torch.Tensor, act: torch.Tensor,
-                        present: torch.Tensor) -> None:
-        """This update's per-step team data; rows refer to it by ``GROUP_ROW``.
+    def set_group_table(self, **table: torch.Tensor) -> None:
+        """This update's per-step team data and targets (``GROUP_TABLE`` in ``columns.py``).
 
-        One row per env step (not per agent row): the team's observations are stored once
-        instead of once per robot. Transient (not a parameter, not checkpointed).
+        Keys: ``obs``, ``act``, ``present`` and, once targets exist, ``returns``,
+        ``old_values``, ``old_baselines``. Transient (not a parameter, not checkpointed).
         """
-        self._table = (obs, act, present)
+        self._table = table
 
     def _forward(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        obs, act, present = self._table
-        row = batch[C.GROUP_ROW]
-        values, baselines = self.values_and_baselines(obs[row], act[row], batch[C.SELF_IDX],
-                                                      present[row])
+        """V and b_i for table steps ``batch[GROUP_ROW]`` (all slots)."""
+        t, steps = self._table, batch[C.GROUP_ROW]
+        values, baselines = self.group_heads(self.encode(t["obs"][steps]), t["act"][steps],
+                                             t["present"][steps])
         return {C.VALUES: values, C.BASELINES: baselines}
 
-    def loss(self, rows: dict[str, Any], epsilon: float) -> dict[str, torch.Tensor]:
-        """Value and baseline regression on policy rows (ML-Agents' clipped form)."""
-        out = self._forward(rows)
-        mask = rows[Columns.LOSS_MASK]
-        value_loss = trust_region_value_loss(out[C.VALUES], rows[C.OLD_VALUES],
-                                             rows[C.RETURNS], epsilon, mask)
-        baseline_loss = trust_region_value_loss(out[C.BASELINES], rows[C.OLD_BASELINES],
-                                                rows[C.RETURNS], epsilon, mask)
+    def loss(self, steps: torch.Tensor, epsilon: float) -> dict[str, torch.Tensor]:
+        """Value and baseline regression on table steps (ML-Agents' clipped form).
+
+        The value loss averages over steps, the baseline loss over (step, present robot):
+        the same weights as averaging both over every robot's row, as ML-Agents does.
+        """
+        out = self._forward({C.GROUP_ROW: steps})
+        t = self._table
+        present = t["present"][steps].bool()
+        returns = t["returns"][steps]
+        value_loss = trust_region_value_loss(out[C.VALUES], t["old_values"][steps], returns,
+                                             epsilon, torch.ones_like(returns))
+        baseline_loss = trust_region_value_loss(
+            out[C.BASELINES], t["old_baselines"][steps], returns.unsqueeze(1).expand_as(present),
+            epsilon, present)
         return {"value_loss": value_loss, "baseline_loss": baseline_loss,
                 "critic_loss": poca_critic_loss(value_loss, baseline_loss)}
