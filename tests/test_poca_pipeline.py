@@ -31,7 +31,7 @@ def test_every_row_holds_its_own_observation_and_action_at_its_slot(team):
     batch = learner._learner_connector(rl_module=learner.module, batch={}, episodes=episodes,
                                        shared_data={})
     slots = config.poca_team["slots"]
-    table = {k: t.numpy() for k, t in learner.module[CRITIC_ID]._table.items()}
+    table = {k: t.numpy() for k, t in learner.module[CRITIC_ID].table("train").items()}
     table_obs, table_act, present = table["obs"], table["act"], table["present"]
     assert present.min() == 1.0  # every robot acts every step
     for module_id in ("wheeled", "quad"):
@@ -54,7 +54,7 @@ def test_every_row_holds_its_own_observation_and_action_at_its_slot(team):
     # ceil(valid steps * 32 / largest rows) steps, so both pass equally often
     largest = max(len(batch[m][C.GROUP_ROW]) for m in ("wheeled", "quad"))
     valid = int(sum(batch["quad"][Columns.LOSS_MASK].numpy())) // team[1]
-    schedule = learner.module[CRITIC_ID].minibatches
+    schedule = learner.module[CRITIC_ID].minibatches["train"]
     assert len(schedule.steps) == valid
     assert schedule.size == int(np.ceil(valid * 32 / largest))
 

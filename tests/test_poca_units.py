@@ -144,7 +144,7 @@ def test_critic_loss_on_table_steps_is_the_ml_agents_weighting():
     present[1, 3] = 0.0  # one robot absent at step 1: its baseline is not regressed
     with torch.no_grad():
         v, b = critic.group_heads(critic.encode(obs), act, present)
-    critic.set_group_table(obs=obs, act=act, present=present, returns=v + 1.0,
+    critic.set_group_table("train", obs=obs, act=act, present=present, returns=v + 1.0,
                            old_values=v, old_baselines=b)
     steps = torch.tensor([0, 1, 3])
     out = critic.loss(steps, epsilon=0.2)

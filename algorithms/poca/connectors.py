@@ -24,7 +24,7 @@ from ray.rllib.evaluation.postprocessing import Postprocessing
 
 from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca.losses import lambda_returns, standardize
-from rl_scan.algorithms.poca.modules import CRITIC_ID
+from rl_scan.algorithms.poca.modules import CRITIC_ID, TRAIN_TABLE
 
 
 class AddGroupColumns(ConnectorV2):
@@ -116,13 +116,15 @@ class POCATargets(ConnectorV2):
     """Lambda-returns from V and advantages = returns - b_i, per policy row.
 
     Also hands the critic this update's group table with its targets and its minibatch
-    schedule (``critic.minibatches``).
+    schedule (``critic.minibatches``), under ``table_key``.
     """
 
     def __init__(self, input_observation_space=None, input_action_space=None, *,
-                 gamma: float, lambda_: float, minibatch_size: int | None = None):
+                 gamma: float, lambda_: float, minibatch_size: int | None = None,
+                 table_key: str = TRAIN_TABLE):
         super().__init__(input_observation_space, input_action_space)
         self.gamma, self.lambda_, self.minibatch_size = gamma, lambda_, minibatch_size
+        self.table_key = table_key
 
     def __call__(self, *, rl_module, batch: dict[str, Any], episodes, shared_data=None,
                  **kwargs) -> Any:
@@ -157,11 +159,11 @@ class POCATargets(ConnectorV2):
             step_returns[r] = rows[C.RETURNS]
             step_valid[r] = rows[Columns.LOSS_MASK].bool()
             largest = max(largest, len(r))
-        critic.set_group_table(obs=table["obs"], act=table["act"], present=table["present"],
-                               returns=step_returns, old_values=step_values,
-                               old_baselines=step_baselines)
+        critic.set_group_table(self.table_key, obs=table["obs"], act=table["act"],
+                               present=table["present"], returns=step_returns,
+                               old_values=step_values, old_baselines=step_baselines)
         steps = step_valid.nonzero().squeeze(1)
         size = (math.ceil(len(steps) * self.minibatch_size / largest)
                 if self.minibatch_size and largest else len(steps))
-        critic.minibatches = GroupMinibatches(steps, size)
+        critic.minibatches[self.table_key] = GroupMinibatches(steps, size)
         return batch

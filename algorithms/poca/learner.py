@@ -28,7 +28,28 @@ from rl_scan.algorithms.poca.losses import (
     gaussian_logp_per_dim,
     masked_mean,
 )
-from rl_scan.algorithms.poca.modules import CRITIC_ID
+from rl_scan.algorithms.poca.modules import CRITIC_ID, TRAIN_TABLE
+
+
+def actor_loss(fwd_out: dict[str, Any], batch: dict[str, Any], clip_param: float,
+               beta: float) -> tuple[torch.Tensor, dict[str, Any]]:
+    """PPO-clipped policy loss (ratio per action dimension) minus beta * entropy."""
+    mean, log_std = fwd_out[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
+    old_mean, old_log_std = batch[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
+    actions = batch[Columns.ACTIONS]
+    logp = gaussian_logp_per_dim(actions, mean, log_std)
+    old_logp = gaussian_logp_per_dim(actions, old_mean, old_log_std).detach()
+    mask = batch[Columns.LOSS_MASK]
+    policy_loss = clipped_policy_loss(logp, old_logp, batch[Postprocessing.ADVANTAGES],
+                                      clip_param, mask)
+    entropy = masked_mean(gaussian_entropy(log_std), mask)
+    return policy_loss - beta * entropy, {"policy_loss": policy_loss.detach(),
+                                          "entropy": entropy.detach(), "entropy_coeff": beta}
+
+
+def value_clip(config) -> float:
+    """The critic's clipping range: ``value_clip`` if set, else the policy's ``clip_param``."""
+    return float(config.value_clip if config.value_clip is not None else config.clip_param)
 
 
 class POCATorchLearner(FusedAdamMixin, TorchLearner):
@@ -55,9 +76,7 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
                        ) -> dict[str, Any]:
         losses = super().compute_losses(fwd_out=fwd_out, batch=batch)
         critic = self.module[CRITIC_ID]
-        clip = self.config.value_clip
-        out = critic.loss(critic.minibatches.next(),
-                          float(clip if clip is not None else self.config.clip_param))
+        out = critic.loss(critic.minibatches[TRAIN_TABLE].next(), value_clip(self.config))
         self.metrics.log_dict({k: v.detach() for k, v in out.items()}, key=CRITIC_ID,
                               window=1)
         losses[CRITIC_ID] = out["critic_loss"]
@@ -66,20 +85,10 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
     @override(TorchLearner)
     def compute_loss_for_module(self, *, module_id: str, config, batch: dict[str, Any],
                                 fwd_out: dict[str, Any]) -> torch.Tensor:
-        mean, log_std = fwd_out[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
-        old_mean, old_log_std = batch[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
-        actions = batch[Columns.ACTIONS]
-        logp = gaussian_logp_per_dim(actions, mean, log_std)
-        old_logp = gaussian_logp_per_dim(actions, old_mean, old_log_std).detach()
-        mask = batch[Columns.LOSS_MASK]
-        policy_loss = clipped_policy_loss(logp, old_logp, batch[Postprocessing.ADVANTAGES],
-                                          float(config.clip_param), mask)
-        entropy = masked_mean(gaussian_entropy(log_std), mask)
         beta = self.entropy_coeff_schedulers[module_id].get_current_value()
-        self.metrics.log_dict({"policy_loss": policy_loss.detach(),
-                               "entropy": entropy.detach(), "entropy_coeff": beta},
-                              key=module_id, window=1)
-        return policy_loss - beta * entropy
+        loss, stats = actor_loss(fwd_out, batch, float(config.clip_param), beta)
+        self.metrics.log_dict(stats, key=module_id, window=1)
+        return loss
 
     @override(TorchLearner)
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:

@@ -24,6 +24,7 @@ from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca.losses import poca_critic_loss, trust_region_value_loss
 
 CRITIC_ID = "critic"
+TRAIN_TABLE = "train"  # the group table of a plain POCA update
 
 
 def mlp(sizes: list[int], activation=nn.ReLU) -> nn.Sequential:
@@ -149,7 +150,8 @@ class POCACritic(TorchRLModule):
         self.body = mlp([h + 1, h, h])
         self.head = nn.Linear(h, 1)
         self.hidden = h
-        self._table: dict[str, torch.Tensor] = {}
+        self._tables: dict[str, dict[str, torch.Tensor]] = {}
+        self.minibatches: dict[str, Any] = {}  # per table: its GroupMinibatches
         # Slots of one kind are contiguous (team order): each kind's slots are one slice,
         # and the kinds' outputs concatenate in slot order (no scatter into a zero tensor).
         self._slots_of = {}
@@ -197,29 +199,44 @@ class POCACritic(TorchRLModule):
         values, baselines = self.group_heads(self.encode(group_obs), group_act, present)
         return values, baselines.gather(1, self_idx.long().unsqueeze(1)).squeeze(1)
 
-    def set_group_table(self, **table: torch.Tensor) -> None:
-        """This update's per-step team data and targets (``GROUP_TABLE`` in ``columns.py``).
+    def set_group_table(self, key: str = TRAIN_TABLE, **table: torch.Tensor) -> None:
+        """One update's per-step team data and targets, under ``key``.
 
-        Keys: ``obs``, ``act``, ``present`` and, once targets exist, ``returns``,
-        ``old_values``, ``old_baselines``. Transient (not a parameter, not checkpointed).
+        Keys of ``table``: ``obs``, ``act``, ``present`` and, once targets exist,
+        ``returns``, ``old_values``, ``old_baselines``. Several tables live side by side
+        (meta-learning keeps a task's support and query data). Transient: not a parameter,
+        not checkpointed.
         """
-        self._table = table
+        self._tables[key] = table
+
+    def table(self, key: str = TRAIN_TABLE) -> dict[str, torch.Tensor]:
+        return self._tables[key]
 
     def _forward(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        """V and b_i for table steps ``batch[GROUP_ROW]`` (all slots)."""
-        t, steps = self._table, batch[C.GROUP_ROW]
+        """V and b_i for steps ``batch[GROUP_ROW]`` of table ``batch[TABLE_KEY]``.
+
+        Reads only its batch and parameters, so ``torch.func.functional_call`` with other
+        (e.g. meta-adapted) parameters works.
+        """
+        t, steps = self._tables[batch.get(C.TABLE_KEY, TRAIN_TABLE)], batch[C.GROUP_ROW]
         values, baselines = self.group_heads(self.encode(t["obs"][steps]), t["act"][steps],
                                              t["present"][steps])
         return {C.VALUES: values, C.BASELINES: baselines}
 
-    def loss(self, steps: torch.Tensor, epsilon: float) -> dict[str, torch.Tensor]:
-        """Value and baseline regression on table steps (ML-Agents' clipped form).
+    def loss(self, steps: torch.Tensor, epsilon: float,
+             key: str = TRAIN_TABLE) -> dict[str, torch.Tensor]:
+        """Value and baseline regression on table steps, with this module's parameters."""
+        out = self._forward({C.GROUP_ROW: steps, C.TABLE_KEY: key})
+        return self.loss_from_outputs(out, steps, epsilon, key)
+
+    def loss_from_outputs(self, out: dict[str, torch.Tensor], steps: torch.Tensor,
+                          epsilon: float, key: str = TRAIN_TABLE) -> dict[str, torch.Tensor]:
+        """ML-Agents' clipped value and baseline regression of ``_forward`` outputs.
 
         The value loss averages over steps, the baseline loss over (step, present robot):
         the same weights as averaging both over every robot's row, as ML-Agents does.
         """
-        out = self._forward({C.GROUP_ROW: steps})
-        t = self._table
+        t = self._tables[key]
         present = t["present"][steps].bool()
         returns = t["returns"][steps]
         value_loss = trust_region_value_loss(out[C.VALUES], t["old_values"][steps], returns,
