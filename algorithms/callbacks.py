@@ -37,6 +37,13 @@ def check_losses_finite(result: dict) -> None:
                     "checkpoint is kept (lower the learning rate or check the inputs)")
 
 
+def episode_summary(episode) -> dict[str, float] | None:
+    """The env's ``episode_metrics`` from a finished episode's last infos (None if cut)."""
+    infos = episode.get_infos(-1)
+    return next((i["episode_metrics"] for i in infos.values()
+                 if isinstance(i, dict) and "episode_metrics" in i), None)
+
+
 class ScanMetricsCallback(RLlibCallback):
     """Logs ``scan/*`` episode metrics from the env's final infos; stops on NaN losses."""
 
@@ -47,9 +54,7 @@ class ScanMetricsCallback(RLlibCallback):
     def on_episode_end(self, *, episode, metrics_logger=None, **kwargs) -> None:
         if metrics_logger is None:
             return
-        infos = episode.get_infos(-1)
-        summary = next((i["episode_metrics"] for i in infos.values()
-                        if isinstance(i, dict) and "episode_metrics" in i), None)
+        summary = episode_summary(episode)
         if summary is None:
             return
         for key, value in summary.items():

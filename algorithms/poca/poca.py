@@ -130,9 +130,11 @@ class POCA(PPO):
 def poca_config(env_config: dict[str, Any], *, train_batch_size: int, minibatch_size: int,
                 num_epochs: int = 3, lr: float | list = 3e-4, gamma: float = 0.99,
                 lambda_: float = 0.95, clip_param: float = 0.2,
-                entropy_coeff: float | list = 0.005, **common: Any) -> POCAConfig:
-    """POCAConfig for the scanning env (``common`` goes to ``configure_scan``)."""
-    config = configure_scan(POCAConfig(), env_config, **common)
+                entropy_coeff: float | list = 0.005, base: POCAConfig | None = None,
+                **common: Any) -> POCAConfig:
+    """POCAConfig (or ``base``, e.g. a subclass) for the scanning env (``common`` goes to
+    ``configure_scan``)."""
+    config = configure_scan(base if base is not None else POCAConfig(), env_config, **common)
     config.poca(team=team_layout(env_config))
     return (config
             .rl_module(rl_module_spec=config.module_specs())
