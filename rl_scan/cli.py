@@ -257,9 +257,45 @@ def _train_cmd(args: argparse.Namespace) -> int:
     env_config_from_args(args)  # validate before anything starts
     run_dir = train(args.algo, env_mapping_from_args(args), args.preset, seed=args.seed,
                     results_dir=args.results, name=args.name, address=args.address,
-                    resume=args.resume, preset_overrides=overrides)
+                    resume=args.resume, preset_overrides=overrides,
+                    init_from=getattr(args, "init_from", None))
     print(f"done: {run_dir}")
     return 0
+
+
+def _adapt_cmd(args: argparse.Namespace) -> int:
+    args.algo, args.init_from = "poca", args.checkpoint
+    if args.budget is not None:
+        if args.budget < 1:
+            raise ConfigError(f"budget={args.budget} is invalid: allowed >= 1 env steps")
+        args.total_env_steps = args.budget
+    return _train_cmd(args)
+
+
+def _experiment_cmd(args: argparse.Namespace) -> int:
+    from rl_scan.tuning.meta_mrss import parse_tests, run_protocol
+
+    overrides = {k: v for k, v in (("pretrain_steps", args.pretrain_steps),
+                                   ("adapt_steps", args.adapt_steps)) if v is not None}
+    run_protocol(args.results, args.name, preset=args.preset,
+                 methods=[m.strip() for m in args.methods.split(",") if m.strip()],
+                 tests=parse_tests(args.tests), seeds=args.seeds,
+                 protocol_overrides=overrides)
+    return 0
+
+
+def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
+    """Options every Tune-launched run shares (train, meta-train, adapt)."""
+    p.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick",
+                   help="budget: smoke (seconds), quick (minutes, default), paper (cluster)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--results", default="results", help="results folder (default results/)")
+    p.add_argument("--name", default=None, help=f"run name (default {default_name})")
+    p.add_argument("--address", default=None, help="Ray cluster address (default: local)")
+    p.add_argument("--resume", action="store_true", help="continue the run named --name")
+    p.add_argument("--num-env-runners", type=int, default=None,
+                   help="remote sampling actors (preset default; each needs a CPU)")
+    p.add_argument("--envs-per-runner", type=int, default=None, help="envs per env runner")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -334,20 +370,59 @@ def build_parser() -> argparse.ArgumentParser:
                     "eval_metrics.json, and tune/trial/ with progress.csv, TensorBoard events "
                     "and checkpoints; "
                     "--resume continues an interrupted run from its last checkpoint.")
-    tr.add_argument("--algo", choices=("poca", "ppo"), default="poca", help="default poca")
-    tr.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick",
-                    help="budget: smoke (seconds), quick (minutes, default), paper (cluster)")
-    tr.add_argument("--seed", type=int, default=0)
-    tr.add_argument("--results", default="results", help="results folder (default results/)")
-    tr.add_argument("--name", default=None, help="run name (default ALGO_SCENARIO_PRESET_sSEED)")
-    tr.add_argument("--address", default=None, help="Ray cluster address (default: local)")
-    tr.add_argument("--resume", action="store_true", help="continue the run named --name")
-    tr.add_argument("--num-env-runners", type=int, default=None,
-                    help="remote sampling actors (preset default; each needs a CPU)")
-    tr.add_argument("--envs-per-runner", type=int, default=None, help="envs per env runner")
+    tr.add_argument("--algo", choices=("poca", "ppo", "meta-poca"), default="poca",
+                    help="default poca")
+    _add_run_args(tr, "ALGO_SCENARIO_PRESET_sSEED")
     tr.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
+    tr.add_argument("--init-from", default=None, metavar="CHECKPOINT",
+                    help="start from this checkpoint's (or run folder's) weights")
     add_env_args(tr)
     tr.set_defaults(func=_train_cmd)
+
+    mt = sub.add_parser(
+        "meta-train", formatter_class=fmt, help="meta-train MetaPOCA (meta-MRSS) through Tune",
+        description="Meta-train POCA with MAML (the paper's Algorithm 1): per meta-iteration "
+                    "the preset's meta_tasks train scenarios, meta_episodes support episodes "
+                    "each, inner_steps adaptation steps (first order, inner Adam), as many "
+                    "query episodes, one meta update. Same run folder, --resume and "
+                    "checkpoints as `train`; --scenario is what evaluation uses.")
+    _add_run_args(mt, "meta-poca_SCENARIO_PRESET_sSEED")
+    mt.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
+    add_env_args(mt)
+    mt.set_defaults(func=_train_cmd, algo="meta-poca")
+
+    ad = sub.add_parser(
+        "adapt", formatter_class=fmt, help="adapt a trained team to a scenario (POCA)",
+        description="Fine-tune a checkpoint's team (meta-trained or not) with POCA on a "
+                    "scenario for a budget of env steps, evaluating on the way; a normal run "
+                    "folder whose eval_metrics.json is the adaptation curve.")
+    ad.add_argument("checkpoint", help="a checkpoint, trial or run folder (newest checkpoint)")
+    ad.add_argument("--budget", type=int, default=None,
+                    help="adaptation env steps (default: the preset's budget)")
+    _add_run_args(ad, "poca_SCENARIO_PRESET_sSEED")
+    add_env_args(ad)
+    ad.set_defaults(func=_adapt_cmd, total_env_steps=None)
+
+    ex = sub.add_parser("experiment", formatter_class=fmt, help="multi-run protocols",
+                        description="Protocols made of many runs.")
+    ex_sub = ex.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
+    mm = ex_sub.add_parser(
+        "meta-mrss", formatter_class=fmt, help="meta-MRSS vs its baselines on test scenes",
+        description="Pre-train meta-MRSS, domain randomisation and transfer learning, then "
+                    "adapt each (and standard POCA from scratch) on every held-out test "
+                    "scenario with the same budget, for each seed; print method x (final "
+                    "coverage, env steps to 80 %%, success) with the paper's figures. "
+                    "Re-running resumes: finished runs are skipped.")
+    mm.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick")
+    mm.add_argument("--seeds", type=int, default=3)
+    mm.add_argument("--tests", default="0,1,2,3,4", help="test scenario indices (0-4)")
+    mm.add_argument("--methods", default="meta-mrss,dr,transfer,poca",
+                    help="comma-separated subset of meta-mrss,dr,transfer,poca")
+    mm.add_argument("--pretrain-steps", type=int, default=None, help="override the preset")
+    mm.add_argument("--adapt-steps", type=int, default=None, help="override the preset")
+    mm.add_argument("--results", default="results")
+    mm.add_argument("--name", default="meta-mrss")
+    mm.set_defaults(func=_experiment_cmd)
 
     ev = sub.add_parser(
         "evaluate", formatter_class=fmt, help="metrics of a trained team",

@@ -32,26 +32,37 @@ from rl_scan.tuning.presets import TrainPreset, get_preset
 
 # name -> (module, function building the AlgorithmConfig)
 ALGORITHMS = {"ppo": ("rl_scan.algorithms.ppo", "ppo_config"),
-              "poca": ("rl_scan.algorithms.poca", "poca_config")}
+              "poca": ("rl_scan.algorithms.poca", "poca_config"),
+              "meta-poca": ("rl_scan.algorithms.maml", "meta_poca_config")}
 RUN_FILE, EVAL_FILE = "run.yaml", "eval_metrics.json"
 TUNE_DIR = "tune"  # Tune's own experiment folder inside the run folder (Tune re-syncs it)
 ENV_STEPS = "num_env_steps_sampled_lifetime"
 
 
 def build_algorithm_config(algo: str, env_config: dict[str, Any], preset: TrainPreset,
-                           seed: int = 0):
-    """The RLlib AlgorithmConfig of a run (env overrides of the preset applied)."""
+                           seed: int = 0, init_from: str | Path | None = None):
+    """The RLlib AlgorithmConfig of a run (env overrides of the preset applied), starting
+    from the weights of checkpoint ``init_from`` if given."""
     if algo not in ALGORITHMS:
         fail("algo", algo, f"one of {sorted(ALGORITHMS)}")
     module, func = ALGORITHMS[algo]
     builder = getattr(importlib.import_module(module), func)
-    return builder(deep_merge(preset.env_overrides, env_config),
-                   train_batch_size=preset.train_batch_size,
-                   minibatch_size=preset.minibatch_size, num_epochs=preset.num_epochs,
-                   lr=preset.lr, num_env_runners=preset.num_env_runners,
-                   num_envs_per_env_runner=preset.num_envs_per_env_runner,
-                   evaluation_interval=preset.evaluation_interval,
-                   evaluation_episodes=preset.evaluation_episodes, seed=seed)
+    meta = (dict(tasks=preset.meta_tasks, episodes=preset.meta_episodes,
+                 inner_steps=preset.inner_steps, inner_lr=preset.inner_lr,
+                 order=preset.meta_order) if algo == "meta-poca" else {})
+    config = builder(deep_merge(preset.env_overrides, env_config),
+                     train_batch_size=preset.train_batch_size,
+                     minibatch_size=preset.minibatch_size, num_epochs=preset.num_epochs,
+                     lr=preset.lr, num_env_runners=preset.num_env_runners,
+                     num_envs_per_env_runner=preset.num_envs_per_env_runner,
+                     evaluation_interval=preset.evaluation_interval,
+                     evaluation_episodes=preset.evaluation_episodes, seed=seed, **meta)
+    if init_from is not None:
+        from rl_scan.algorithms.init_weights import init_from_callback
+
+        config.callbacks(on_algorithm_init=init_from_callback(init_from))
+    config.validate()  # every setting checked before Ray starts
+    return config
 
 
 def git_commit() -> str:
@@ -105,8 +116,13 @@ def _init_ray(address: str | None) -> float:
 def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
           seed: int = 0, results_dir: str | Path = "results", name: str | None = None,
           address: str | None = None, resume: bool = False,
-          preset_overrides: dict[str, Any] | None = None, console=None) -> Path:
-    """Run (or resume) one Tune training run; returns its run folder."""
+          preset_overrides: dict[str, Any] | None = None, init_from: str | Path | None = None,
+          console=None) -> Path:
+    """Run (or resume) one Tune training run; returns its run folder.
+
+    ``init_from``: a checkpoint (or run folder) whose module weights the run starts from
+    (adaptation / fine-tuning); recorded in run.yaml.
+    """
     from rich.console import Console
 
     console = console or Console()
@@ -121,7 +137,11 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
                           "or choose another --name")
     if resume and not (run_dir / RUN_FILE).is_file():
         raise ConfigError(f"--resume: no run to resume in {str(run_dir)!r}")
-    config = build_algorithm_config(algo, env_config, preset, seed)
+    if init_from is not None:
+        from rl_scan.algorithms.rollout import resolve_checkpoint
+
+        init_from = resolve_checkpoint(init_from)
+    config = build_algorithm_config(algo, env_config, preset, seed, init_from)
     cpus = _init_ray(address)
     check_resources(preset, cpus)
 
@@ -130,7 +150,8 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
     if not resume:
         text = yaml.safe_dump({
             "algo": algo, "preset": preset_name, "preset_config": to_dict(preset),
-            "seed": seed, "env_config": to_dict(env_cfg), "git_commit": git_commit(),
+            "seed": seed, "env_config": to_dict(env_cfg),
+            "init_from": str(init_from) if init_from else None, "git_commit": git_commit(),
             "versions": _versions(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
         }, sort_keys=False)
         run_dir.mkdir(parents=True)
@@ -182,6 +203,9 @@ class ProgressCallback(Callback):
                 f"({100 * steps / self.total:5.1f}%)  "
                 f"return {runners.get('episode_return_mean', math.nan):8.1f}  "
                 f"coverage {cov:5.3f}  {result.get('time_this_iter_s', 0):5.1f} s/iter")
+        if "meta/coverage_after_adaptation" in result:  # meta-poca
+            line += (f"  meta coverage {result['meta/coverage_before_adaptation']:5.3f} -> "
+                     f"{result['meta/coverage_after_adaptation']:5.3f} after adaptation")
         # RLlib repeats the previous evaluation in the next results: use evaluation iterations.
         it = result.get("training_iteration", 0)
         evaluated = self.evaluation_interval > 0 and it % self.evaluation_interval == 0

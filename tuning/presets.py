@@ -35,6 +35,16 @@ class TrainPreset:
     """Checkpoint every N iterations (and at the end)."""
     env_overrides: dict[str, Any] = field(default_factory=dict)
     """EnvConfig fields this preset changes (e.g. shorter episodes for smoke runs)."""
+    meta_tasks: int = 10
+    """meta-poca: tasks (train scenarios) per meta-iteration (paper tau = 10)."""
+    meta_episodes: int = 20
+    """meta-poca: support episodes, and as many query episodes, per task (paper K = 20)."""
+    inner_steps: int = 1
+    """meta-poca: inner (adaptation) steps per task."""
+    inner_lr: float = 3e-4
+    """meta-poca: inner learning rate (Adam for first order, SGD for second order)."""
+    meta_order: int = 1
+    """meta-poca: 1 = first order with inner Adam (paper), 2 = second order with SGD."""
 
     def validate(self, prefix: str = "") -> None:
         check_range(prefix + "total_env_steps", self.total_env_steps, 1)
@@ -47,6 +57,11 @@ class TrainPreset:
         check_range(prefix + "evaluation_interval", self.evaluation_interval, 0)
         check_range(prefix + "evaluation_episodes", self.evaluation_episodes, 1)
         check_range(prefix + "checkpoint_frequency", self.checkpoint_frequency, 1)
+        check_range(prefix + "meta_tasks", self.meta_tasks, 1)
+        check_range(prefix + "meta_episodes", self.meta_episodes, 1)
+        check_range(prefix + "inner_steps", self.inner_steps, 1)
+        check_range(prefix + "inner_lr", self.inner_lr, 0.0, 1.0, lo_open=True)
+        check_range(prefix + "meta_order", self.meta_order, 1, 2)
 
     @property
     def iterations(self) -> int:
@@ -56,10 +71,12 @@ class TrainPreset:
 PRESETS: dict[str, dict[str, Any]] = {
     "smoke": dict(total_env_steps=800, train_batch_size=400, minibatch_size=256, num_epochs=1,
                   num_envs_per_env_runner=2, evaluation_interval=1, evaluation_episodes=1,
-                  checkpoint_frequency=1, env_overrides={"max_steps": 50}),
+                  checkpoint_frequency=1, env_overrides={"max_steps": 50},
+                  meta_tasks=2, meta_episodes=1, inner_steps=1),
     "quick": dict(total_env_steps=200_000, train_batch_size=4_000, minibatch_size=1_024,
                   num_epochs=3, num_envs_per_env_runner=4, evaluation_interval=5,
-                  evaluation_episodes=3, checkpoint_frequency=5),
+                  evaluation_episodes=3, checkpoint_frequency=5,
+                  meta_tasks=4, meta_episodes=2, inner_steps=2),
     "paper": dict(total_env_steps=8_000_000, train_batch_size=10_240, minibatch_size=1_024,
                   num_epochs=3, num_env_runners=2, num_envs_per_env_runner=4,
                   evaluation_interval=10, evaluation_episodes=10, checkpoint_frequency=10),

@@ -167,13 +167,14 @@ class MetaPOCA(POCA):
             runner.module[mid].load_state_dict(sd)
 
 
-def meta_poca_config(env_config: dict[str, Any], *, tasks: int, episodes: int,
+def meta_poca_config(env_config: dict[str, Any], *, tasks: int = 10, episodes: int = 20,
                      inner_steps: int = 1, inner_lr: float = 3e-4, order: int = 1,
-                     task_pool: int = N_TRAIN, lr: float = 3e-4, **poca_kwargs: Any
-                     ) -> MetaPOCAConfig:
-    """MetaPOCAConfig for the scanning env: POCA's settings plus the meta ones (it samples
-    whole episodes per task, so POCA's batch sizes do not apply)."""
+                     task_pool: int = N_TRAIN, train_batch_size: int = 1,
+                     minibatch_size: int = 1, **poca_kwargs: Any) -> MetaPOCAConfig:
+    """MetaPOCAConfig for the scanning env: POCA's settings plus the meta ones. It samples
+    whole episodes per task, so POCA's batch sizes (accepted for a common launch
+    signature) do not apply."""
     config = poca_config(env_config, base=MetaPOCAConfig(), train_batch_size=1,
-                         minibatch_size=1, lr=lr, **poca_kwargs)
+                         minibatch_size=1, **poca_kwargs)
     return config.meta(tasks=tasks, episodes=episodes, inner_steps=inner_steps,
                        inner_lr=inner_lr, order=order, task_pool=task_pool)

@@ -1,0 +1,221 @@
+"""``rl-scan experiment meta-mrss``: the paper's protocol (Sec. IV-B) on held-out scenarios.
+
+Methods (each gets the same pre-training budget, then the same adaptation budget):
+  meta-mrss  MetaPOCA meta-trained on train scenarios, then adapted (POCA) per test scene;
+  dr         domain randomisation: POCA on a fresh train scenario every episode (train:*),
+             then fine-tuned per test scene;
+  transfer   transfer learning: POCA trained on one train scenario (train:0), then
+             fine-tuned per test scene;
+  poca       standard POCA, from scratch on each test scene (no pre-training).
+Adaptation is POCA training started from the method's weights on ``test:N``, evaluated
+every ``eval_interval`` iterations. From each adaptation curve (evaluation coverage over
+adaptation env steps) we take, defined up front:
+  final coverage  the last evaluation's mean coverage (the paper's "scanning success rate");
+  steps to 80 %   the first evaluation's env steps with mean coverage >= 0.8 (none if never);
+  success         the last evaluation's fraction of episodes with coverage >= 95 %.
+
+Layout: ``RESULTS/NAME/{pretrain,adapt}/<run>/`` are ordinary run folders (``launch.py``);
+``summary.json`` and ``table.md`` hold the results. A finished run has a ``DONE`` file;
+re-running the command skips finished runs and resumes interrupted ones.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rl_scan import metrics as M
+from rl_scan.config import ConfigError, check_range, fail
+from rl_scan.envs.sim.scenarios import N_TEST
+from rl_scan.tuning.launch import EVAL_FILE, RUN_FILE, train
+
+METHODS = ("meta-mrss", "dr", "transfer", "poca")
+PAPER_SUCCESS = {"meta-mrss": 87.12, "dr": 68.54, "poca": 60.16, "transfer": 71.74}
+# method -> (algorithm, pre-training scenario); "poca" has no pre-training
+PRETRAIN = {"meta-mrss": ("meta-poca", "train:*"), "dr": ("poca", "train:*"),
+            "transfer": ("poca", "train:0")}
+DONE = "DONE"
+TARGET = 0.8
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Budgets of one protocol preset (env steps)."""
+
+    train_preset: str
+    pretrain_steps: int
+    adapt_steps: int
+    eval_interval: int
+
+
+PROTOCOLS = {
+    "smoke": Protocol("smoke", pretrain_steps=800, adapt_steps=800, eval_interval=1),
+    "quick": Protocol("quick", pretrain_steps=100_000, adapt_steps=40_000, eval_interval=2),
+    "paper": Protocol("paper", pretrain_steps=8_000_000, adapt_steps=2_000_000,
+                      eval_interval=10),
+}
+
+
+def parse_tests(text: str) -> list[str]:
+    """'0,1,4' or 'test:0,test:3' -> ['test:0', ...]; train scenarios are refused."""
+    out = []
+    for item in [t.strip() for t in str(text).split(",") if t.strip()]:
+        name = item if ":" in item else f"test:{item}"
+        kind, _, index = name.partition(":")
+        if kind == "train":
+            raise ConfigError(f"tests: {name!r} is in the train set; held-out scenarios "
+                              f"are test:0 .. test:{N_TEST - 1}")
+        if kind != "test" or not index.isdigit() or not 0 <= int(index) < N_TEST:
+            fail("tests", item, f"test scenario indices 0..{N_TEST - 1} (e.g. 0,1,2)")
+        out.append(f"test:{int(index)}")
+    if not out:
+        fail("tests", text, f"at least one of 0..{N_TEST - 1}")
+    return out
+
+
+def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protocol) -> None:
+    for m in methods:
+        if m not in METHODS:
+            fail("methods", m, f"any of {', '.join(METHODS)}")
+    if not methods:
+        fail("methods", "", f"any of {', '.join(METHODS)}")
+    check_range("seeds", seeds, 1, 100)
+    check_range("pretrain_steps", protocol.pretrain_steps, 1)
+    check_range("adapt_steps", protocol.adapt_steps, 1)
+    check_range("eval_interval", protocol.eval_interval, 1)
+
+
+def _run(folder: Path, name: str, **kwargs) -> Path:
+    """Train unless finished; resume if interrupted."""
+    run_dir = folder / name
+    if (run_dir / DONE).is_file():
+        return run_dir
+    resume = (run_dir / RUN_FILE).is_file()
+    train(results_dir=folder, name=name, resume=resume, **kwargs)
+    (run_dir / DONE).write_text("finished\n")
+    return run_dir
+
+
+def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
+                 methods: list[str] = list(METHODS), tests: list[str] | None = None,
+                 seeds: int = 3, env_config: dict[str, Any] | None = None,
+                 protocol_overrides: dict[str, int] | None = None, console=None) -> dict:
+    """Pre-train and adapt every method on every test scene and seed; returns the summary."""
+    from rich.console import Console
+
+    console = console or Console()
+    if preset not in PROTOCOLS:
+        fail("preset", preset, f"one of {sorted(PROTOCOLS)}")
+    protocol = Protocol(**{**PROTOCOLS[preset].__dict__, **(protocol_overrides or {})})
+    tests = tests or [f"test:{i}" for i in range(N_TEST)]
+    validate(methods, tests, seeds, protocol)
+    env_config = dict(env_config or {})
+    root = Path(results_dir).resolve() / name
+    total = sum(1 for m in methods if m in PRETRAIN) * seeds + len(methods) * len(tests) * seeds
+    done = 0
+    for seed in range(seeds):
+        for method in methods:
+            init = None
+            if method in PRETRAIN:
+                algo, scenario = PRETRAIN[method]
+                done += 1
+                console.print(f"[bold]meta-mrss[/] run {done}/{total}: pre-train {method} "
+                              f"(seed {seed}, {protocol.pretrain_steps:,} env steps)")
+                init = _run(root / "pretrain", f"{method}_s{seed}", algo=algo,
+                            env_config={**env_config, "scenario": scenario},
+                            preset_name=protocol.train_preset, seed=seed, console=console,
+                            preset_overrides={"total_env_steps": protocol.pretrain_steps})
+            for test in tests:
+                done += 1
+                console.print(f"[bold]meta-mrss[/] run {done}/{total}: adapt {method} on "
+                              f"{test} (seed {seed}, {protocol.adapt_steps:,} env steps)")
+                _run(root / "adapt", f"{method}_{test.replace(':', '')}_s{seed}", algo="poca",
+                     env_config={**env_config, "scenario": test},
+                     preset_name=protocol.train_preset, seed=seed, init_from=init,
+                     console=console,
+                     preset_overrides={"total_env_steps": protocol.adapt_steps,
+                                       "evaluation_interval": protocol.eval_interval})
+    summary = summarize(root, methods, tests, seeds)
+    (root / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    (root / "table.md").write_text(format_table(summary))
+    console.print(format_table(summary))
+    return summary
+
+
+def curve_metrics(entries: list[dict[str, Any]], target: float = TARGET) -> dict[str, float]:
+    """Final coverage, env steps to ``target`` coverage (nan if never) and final success."""
+    if not entries:
+        return {"final_coverage": math.nan, "steps_to_80": math.nan, "success": math.nan}
+    reached = [e["env_steps"] for e in entries if e.get(M.COVERAGE, 0.0) >= target]
+    return {"final_coverage": float(entries[-1][M.COVERAGE]),
+            "steps_to_80": float(reached[0]) if reached else math.nan,
+            "success": float(entries[-1].get(M.SUCCESS, math.nan))}
+
+
+def summarize(root: Path, methods: list[str], tests: list[str], seeds: int) -> dict:
+    """Per method: each seed's mean over test scenes, then mean and std over seeds."""
+    out: dict[str, Any] = {"methods": {}, "missing": []}
+    for method in methods:
+        per_seed: dict[str, list[float]] = {"final_coverage": [], "steps_to_80": [],
+                                            "success": [], "reached_80": []}
+        runs = {}
+        for seed in range(seeds):
+            rows = []
+            for test in tests:
+                run = root / "adapt" / f"{method}_{test.replace(':', '')}_s{seed}"
+                path = run / EVAL_FILE
+                if not path.is_file():
+                    out["missing"].append(str(run))
+                    continue
+                entries = json.loads(path.read_text())
+                rows.append(curve_metrics(entries))
+                runs[run.name] = {"curve": [(e["env_steps"], e[M.COVERAGE]) for e in entries],
+                                  **rows[-1]}
+            if not rows:
+                continue
+            steps = [r["steps_to_80"] for r in rows]
+            per_seed["final_coverage"].append(float(np.mean([r["final_coverage"] for r in rows])))
+            per_seed["success"].append(float(np.nanmean([r["success"] for r in rows])))
+            per_seed["reached_80"].append(float(np.mean([not math.isnan(s) for s in steps])))
+            reached = [s for s in steps if not math.isnan(s)]
+            per_seed["steps_to_80"].append(float(np.mean(reached)) if reached else math.nan)
+        out["methods"][method] = {
+            k: {"mean": _nanstat(np.nanmean, v), "std": _nanstat(np.nanstd, v), "values": v}
+            for k, v in per_seed.items()}
+        out["methods"][method]["runs"] = runs
+    return out
+
+
+def _nanstat(func, values: list[float]) -> float:
+    vals = np.asarray(values, dtype=float)
+    return float(func(vals)) if len(vals) and not np.all(np.isnan(vals)) else math.nan
+
+
+def format_table(summary: dict) -> str:
+    """Markdown: method x (final coverage, steps to 80 %, success), mean +- std over seeds,
+    with the paper's scanning success rates beside ours."""
+    lines = ["| method | final coverage % | env steps to 80 % (runs reaching it) | "
+             "success % | paper's scanning success % |", "|---|---|---|---|---|"]
+    for method, s in summary["methods"].items():
+        def pm(key, scale=1.0, fmt="{:.1f}"):
+            m, sd = s[key]["mean"], s[key]["std"]
+            return "-" if math.isnan(m) else f"{fmt.format(m * scale)} ± {fmt.format(sd * scale)}"
+        reach = s["reached_80"]["mean"]
+        lines.append(f"| {method} | {pm('final_coverage', 100)} | "
+                     f"{pm('steps_to_80', 1, '{:,.0f}')} "
+                     f"({'-' if math.isnan(reach) else f'{100 * reach:.0f} %'}) | "
+                     f"{pm('success', 100)} | {PAPER_SUCCESS.get(method, '-')} |")
+    meta, poca = summary["methods"].get("meta-mrss"), summary["methods"].get("poca")
+    if meta and poca:
+        a, b = meta["steps_to_80"]["mean"], poca["steps_to_80"]["mean"]
+        ratio = "-" if math.isnan(a) or math.isnan(b) else f"{a / b:.2f}"
+        lines.append(f"\nmeta-MRSS / standard POCA env steps to 80 %: {ratio} (goal <= 0.30)")
+    if summary["missing"]:
+        lines.append(f"\nmissing runs ({len(summary['missing'])}): "
+                     + ", ".join(Path(m).name for m in summary["missing"]))
+    return "\n".join(lines) + "\n"
