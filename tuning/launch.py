@@ -40,23 +40,27 @@ ENV_STEPS = "num_env_steps_sampled_lifetime"
 
 
 def build_algorithm_config(algo: str, env_config: dict[str, Any], preset: TrainPreset,
-                           seed: int = 0, init_from: str | Path | None = None):
+                           seed: int = 0, init_from: str | Path | None = None,
+                           algo_kwargs: dict[str, Any] | None = None):
     """The RLlib AlgorithmConfig of a run (env overrides of the preset applied), starting
-    from the weights of checkpoint ``init_from`` if given."""
+    from the weights of checkpoint ``init_from`` if given; ``algo_kwargs`` override the
+    preset's algorithm settings (e.g. lr, entropy_coeff in a hyperparameter search)."""
     if algo not in ALGORITHMS:
         fail("algo", algo, f"one of {sorted(ALGORITHMS)}")
     module, func = ALGORITHMS[algo]
     builder = getattr(importlib.import_module(module), func)
-    meta = (dict(tasks=preset.meta_tasks, episodes=preset.meta_episodes,
-                 inner_steps=preset.inner_steps, inner_lr=preset.inner_lr,
-                 order=preset.meta_order) if algo == "meta-poca" else {})
-    config = builder(deep_merge(preset.env_overrides, env_config),
-                     train_batch_size=preset.train_batch_size,
-                     minibatch_size=preset.minibatch_size, num_epochs=preset.num_epochs,
-                     lr=preset.lr, num_env_runners=preset.num_env_runners,
-                     num_envs_per_env_runner=preset.num_envs_per_env_runner,
-                     evaluation_interval=preset.evaluation_interval,
-                     evaluation_episodes=preset.evaluation_episodes, seed=seed, **meta)
+    kwargs = dict(train_batch_size=preset.train_batch_size,
+                  minibatch_size=preset.minibatch_size, num_epochs=preset.num_epochs,
+                  lr=preset.lr, num_env_runners=preset.num_env_runners,
+                  num_envs_per_env_runner=preset.num_envs_per_env_runner,
+                  evaluation_interval=preset.evaluation_interval,
+                  evaluation_episodes=preset.evaluation_episodes, seed=seed)
+    if algo == "meta-poca":
+        kwargs.update(tasks=preset.meta_tasks, episodes=preset.meta_episodes,
+                      inner_steps=preset.inner_steps, inner_lr=preset.inner_lr,
+                      order=preset.meta_order)
+    kwargs.update(algo_kwargs or {})
+    config = builder(deep_merge(preset.env_overrides, env_config), **kwargs)
     if init_from is not None:
         from rl_scan.algorithms.init_weights import init_from_callback
 
