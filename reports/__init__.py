@@ -1,1 +1,1 @@
-"""Ablation report generation lands here: issue #6."""
+"""Reports from rl-scan results: statistics, figures, Markdown/HTML (``build.py``)."""

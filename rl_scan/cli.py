@@ -299,6 +299,14 @@ def _ablate_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _report_cmd(args: argparse.Namespace) -> int:
+    from rl_scan.reports.build import build_report
+
+    out = build_report(args.results_dir, args.out, reference=not args.no_reference)
+    print(f"wrote {out / 'report.md'}, {out / 'report.html'}, {out / 'marl_eval.json'}")
+    return 0
+
+
 def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
     """Options every Tune-launched run shares (train, meta-train, adapt)."""
     p.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick",
@@ -434,6 +442,18 @@ def build_parser() -> argparse.ArgumentParser:
     ab.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
     add_env_args(ab)
     ab.set_defaults(func=_ablate_cmd)
+
+    rp = sub.add_parser(
+        "report", formatter_class=fmt, help="Markdown + HTML report of a results folder",
+        description="Read every run, ablation study and meta-MRSS experiment under "
+                    "RESULTS_DIR (finished or not) and write report.md, a self-contained "
+                    "report.html, figures/*.png and marl_eval.json (marl-eval's layout) to "
+                    "OUT (default RESULTS_DIR/report).")
+    rp.add_argument("results_dir")
+    rp.add_argument("--out", default=None, help="output folder (default RESULTS_DIR/report)")
+    rp.add_argument("--no-reference", action="store_true",
+                    help="skip the scripted greedy team's reference line")
+    rp.set_defaults(func=_report_cmd)
 
     ex = sub.add_parser("experiment", formatter_class=fmt, help="multi-run protocols",
                         description="Protocols made of many runs.")

@@ -1,0 +1,334 @@
+"""``rl-scan report RESULTS_DIR``: Markdown + self-contained HTML report with PNG figures.
+
+Per group of runs (an ablation study, a meta-MRSS experiment, loose training runs):
+  * learning curves: evaluation coverage over env steps, mean +- std over seeds and a 95 %
+    CI band (mean +- 1.96 standard errors), the scripted greedy team as a reference line;
+  * a table per condition: runs, final coverage mean +- std, IQM with a stratified
+    bootstrap 95 % CI, success rate with a Wilson 95 % CI over evaluation episodes, and
+    the convergence verdict by the rule stated in the report (``CONVERGED``);
+  * probability of improvement for the paper's comparisons (POCA vs PPO, hetero vs homo,
+    meta-MRSS vs each baseline);
+  * compute: env steps/s end to end and wall time per run, hardware, package versions.
+Headline scores are final-checkpoint scores (the last evaluation of each run). Runs still
+going are reported as far as they got, and missing runs are listed. Raw per-run metrics
+are exported in marl-eval's JSON layout (``marl_eval.json``).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import os
+import platform
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rl_scan.reports.collect import Collection, RunRecord, collect
+from rl_scan.reports.stats import (
+    iqm,
+    mean_std,
+    probability_of_improvement,
+    probability_of_improvement_ci,
+    stratified_bootstrap_ci,
+    wilson_interval,
+)
+
+CONVERGED = 0.80
+RULE = (f"A condition **converged** if the mean over seeds of its final evaluation coverage "
+        f"is at least {CONVERGED:.0%}; otherwise it **failed**.")
+PAPER_TABLE_II = {"1": "succeed", "2": "failed", "3": "failed", "4": "failed",
+                  "5": "failed", "6": "succeed", "7": "failed"}
+PAPER_META = {"meta-mrss": "87.12 %", "dr": "68.54 %", "poca": "60.16 %",
+              "transfer": "71.74 %"}
+COMPARISONS = {  # group kind -> (better, other) pairs for probability of improvement
+    "algo": [("poca", "ppo")],
+    "team": [("2,2", "0,4"), ("2,2", "4,0")],
+    "adapt": [("meta-mrss", "dr"), ("meta-mrss", "transfer"), ("meta-mrss", "poca")],
+}
+DIFFERENCES = (
+    "Differences from the paper's set-up: our simulator is a voxel re-implementation of "
+    "their Unity scenes (same sensor encoding, robot kinds and reward terms, arena "
+    "20 x 20 x 8 m, 0.5 m cells), budgets are those of the preset named in each section "
+    "(the paper trained for 8-14 M env steps), and every figure here comes from runs on "
+    "this machine.")
+
+
+def group_kind(group: str) -> str:
+    for kind in ("comm", "algo", "team", "hpo"):
+        if group.startswith(f"ablate-{kind}"):
+            return kind
+    return "adapt" if group.endswith("/adapt") else "runs"
+
+
+def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
+    """One row of statistics per condition (final-checkpoint scores over seeds)."""
+    by_cond: dict[str, list[RunRecord]] = defaultdict(list)
+    for r in runs:
+        by_cond[r.condition].append(r)
+    rows = []
+    for cond, rs in sorted(by_cond.items()):
+        scored = [r for r in rs if r.evals]
+        finals = [r.final_coverage for r in scored]
+        # strata = tasks: the scenario each run was evaluated on
+        strata: dict[str, list[float]] = defaultdict(list)
+        for r in scored:
+            strata[r.scenario].append(r.final_coverage)
+        episodes = sum(r.eval_episodes for r in scored)
+        successes = sum(r.final_success * r.eval_episodes for r in scored
+                        if not math.isnan(r.final_success))
+        mean, std = mean_std(finals)
+        rows.append({
+            "condition": cond, "runs": len(rs), "scored": len(scored),
+            "final_mean": mean, "final_std": std, "iqm": iqm(finals) if finals else math.nan,
+            "iqm_ci": stratified_bootstrap_ci(list(strata.values())),
+            "success": successes / episodes if episodes else math.nan,
+            "success_ci": wilson_interval(successes, episodes), "episodes": episodes,
+            "converged": (not math.isnan(mean)) and mean >= CONVERGED,
+            "finals": finals})
+    return rows
+
+
+def improvement_rows(kind: str, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    finals = {r["condition"]: r["finals"] for r in rows}
+    out = []
+    for a, b in COMPARISONS.get(kind, []):
+        if finals.get(a) and finals.get(b):
+            out.append({"x": a, "y": b, "p": probability_of_improvement(finals[a], finals[b]),
+                        "ci": probability_of_improvement_ci(finals[a], finals[b])})
+    return out
+
+
+def curve_band(runs: list[RunRecord]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Steps, mean, std and 95 % CI half-width of coverage over the runs' common steps."""
+    curves = [dict(r.curve) for r in runs if r.evals]
+    steps = sorted(set.intersection(*[set(c) for c in curves])) if curves else []
+    if not steps:
+        return (np.array([]),) * 4
+    values = np.array([[c[s] for s in steps] for c in curves])
+    mean, std = values.mean(0), values.std(0)
+    half = 1.96 * values.std(0, ddof=1) / np.sqrt(len(curves)) if len(curves) > 1 else 0 * mean
+    return np.array(steps), mean, std, half
+
+
+def plot_curves(runs: list[RunRecord], title: str, out: Path,
+                reference: float | None = None) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=110)
+    by_cond: dict[str, list[RunRecord]] = defaultdict(list)
+    for r in runs:
+        by_cond[r.condition].append(r)
+    for cond, rs in sorted(by_cond.items()):
+        steps, mean, std, half = curve_band(rs)
+        if not len(steps):
+            continue
+        line, = ax.plot(steps, mean, label=f"{cond} (n={len(rs)})", lw=1.8)
+        ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.15)
+        ax.fill_between(steps, mean - half, mean + half, color=line.get_color(), alpha=0.3)
+    if reference is not None and not math.isnan(reference):
+        ax.axhline(reference, color="k", ls="--", lw=1, label="scripted greedy team")
+    ax.axhline(CONVERGED, color="grey", ls=":", lw=1)
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("evaluation coverage")
+    ax.set_ylim(0, 1.02)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+def greedy_reference(scenario: str, episodes: int = 3) -> float:
+    """Mean final coverage of the scripted greedy team on a scenario (nan if unknown)."""
+    try:
+        from rl_scan.envs.core import ScanCore
+        from rl_scan.envs.heuristics import GreedyTeam, run_episode
+
+        core = ScanCore({"scenario": scenario})
+        return float(np.mean([run_episode(core, GreedyTeam(core), seed=s)["coverage"]
+                              for s in range(episodes)]))
+    except Exception:  # noqa: BLE001 - a reference line is optional
+        return math.nan
+
+
+def _fmt(x: float, pct: bool = True) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "-"
+    return f"{100 * x:.1f}" if pct else f"{x:,.0f}"
+
+
+def _table(rows: list[dict[str, Any]], kind: str) -> list[str]:
+    head = ["condition", "runs", "final coverage % (mean ± std)", "IQM % [95 % CI]",
+            "success % [95 % CI] (episodes)", "verdict"]
+    if kind == "comm":
+        head.append("paper (Table II)")
+    if kind == "adapt":
+        head.append("paper success")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        lo, hi = r["iqm_ci"]
+        slo, shi = r["success_ci"]
+        cells = [r["condition"], f"{r['scored']}/{r['runs']}",
+                 f"{_fmt(r['final_mean'])} ± {_fmt(r['final_std'])}",
+                 f"{_fmt(r['iqm'])} [{_fmt(lo)}, {_fmt(hi)}]",
+                 f"{_fmt(r['success'])} [{_fmt(slo)}, {_fmt(shi)}] ({r['episodes']})",
+                 "converged" if r["converged"] else "failed"]
+        if kind == "comm":
+            cells.append(PAPER_TABLE_II.get(r["condition"], "(not in the paper)"))
+        if kind == "adapt":
+            cells.append(PAPER_META.get(r["condition"], "-"))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def marl_eval_json(runs: list[RunRecord]) -> dict[str, Any]:
+    """marl-eval's layout: env -> task -> algorithm -> run -> step_k / absolute_metrics."""
+    out: dict[str, Any] = {"rl-scan": {}}
+    counters: dict[tuple, int] = defaultdict(int)
+    for r in runs:
+        task = r.scenario or "unknown"
+        algo = f"{r.group}:{r.condition}"
+        key = (task, algo)
+        run_id = f"run_{counters[key]}"
+        counters[key] += 1
+        steps = {f"step_{i}": {"step_count": int(e["env_steps"]),
+                               "coverage": [float(e["coverage"])],
+                               "return": [float(e.get("episode_return_mean") or math.nan)]}
+                 for i, e in enumerate(r.evals)}
+        if r.evals:
+            steps["absolute_metrics"] = {"coverage": [r.final_coverage],
+                                         "success": [r.final_success]}
+        out["rl-scan"].setdefault(task, {}).setdefault(algo, {})[run_id] = steps
+    return out
+
+
+def hardware() -> dict[str, str]:
+    cpu = "unknown"
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in
+                   Path("/proc/cpuinfo").read_text().splitlines()
+                   if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    import ray
+    import torch
+
+    import rl_scan
+
+    return {"cpu": cpu, "cores": str(os.cpu_count()), "python": platform.python_version(),
+            "rl_scan": rl_scan.__version__, "ray": ray.__version__, "torch": torch.__version__}
+
+
+def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
+                 reference: bool = True) -> Path:
+    """Write report.md, report.html, figures/*.png and marl_eval.json; returns out_dir."""
+    results_dir = Path(results_dir).resolve()
+    if not results_dir.is_dir():
+        raise ValueError(f"results_dir={str(results_dir)!r} is not a folder")
+    out = Path(out_dir).resolve() if out_dir else results_dir / "report"
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    data: Collection = collect(results_dir)
+    if not data.runs:
+        raise ValueError(f"results_dir={str(results_dir)!r} holds no rl-scan runs or studies")
+    md = [f"# rl-scan report: {results_dir.name}", "",
+          f"{len(data.runs)} runs read from `{results_dir}`. Scores are final-checkpoint "
+          "scores (each run's last evaluation); bands are ± 1 std (light) and a 95 % CI of "
+          "the mean (dark) over seeds. " + RULE, "", DIFFERENCES, ""]
+    groups: dict[str, list[RunRecord]] = defaultdict(list)
+    for r in data.runs:
+        groups[r.group].append(r)
+    figures = []
+    for group, runs in sorted(groups.items()):
+        kind = group_kind(group)
+        md += [f"## {group}", ""]
+        planned = data.planned.get(group)
+        missing = [r for r in runs if not r.evals]
+        if planned and len(runs) < planned:
+            md.append(f"**Partial:** {len(runs)} of {planned} planned trials have started.")
+        if missing:
+            md.append(f"**Missing evaluations:** {len(missing)} run(s) have none yet: "
+                      + ", ".join(f"`{r.path.name}`" for r in missing[:10]))
+        scenarios = sorted({r.scenario for r in runs if r.scenario})
+        ref = (greedy_reference(scenarios[0]) if reference and len(scenarios) == 1
+               else None)
+        fig = plot_curves(runs, group, out / "figures" / f"{group.replace('/', '_')}.png", ref)
+        figures.append(fig)
+        md += ["", f"![{group}](figures/{fig.name})", ""]
+        rows = condition_rows(runs)
+        md += _table(rows, kind)
+        if ref is not None and not math.isnan(ref):
+            md += ["", f"Scripted greedy team on {scenarios[0]}: {100 * ref:.1f} % coverage."]
+        imp = improvement_rows(kind, rows)
+        if imp:
+            md += ["", "| probability of improvement | P(X > Y) [95 % CI] |", "|---|---|"]
+            md += [f"| {i['x']} > {i['y']} | {i['p']:.2f} [{i['ci'][0]:.2f}, {i['ci'][1]:.2f}] |"
+                   for i in imp]
+        md += ["", "| run | env steps | wall time | env steps/s (end to end) |",
+               "|---|---|---|---|"]
+        md += [f"| {r.path.name} | {r.env_steps:,} | {_fmt(r.time_total_s, False)} s | "
+               f"{_fmt(r.env_steps_per_s, False)} |" for r in runs]
+        md.append("")
+    hw = hardware()
+    md += ["## Compute", "", "| item | value |", "|---|---|"]
+    md += [f"| {k} | {v} |" for k, v in hw.items()]
+    md += ["", "Env-only speed: `rl-scan bench env`; end-to-end training speed: "
+           "`rl-scan bench train` (figures in the README and issue notes).", ""]
+    (out / "report.md").write_text("\n".join(md))
+    (out / "marl_eval.json").write_text(json.dumps(marl_eval_json(data.runs), default=float))
+    (out / "report.html").write_text(to_html("\n".join(md), out))
+    return out
+
+
+def to_html(markdown: str, out: Path) -> str:
+    """A minimal Markdown -> HTML for our own report (headings, tables, images inlined)."""
+    body, table = [], []
+
+    def flush_table():
+        if not table:
+            return
+        rows = [r.strip().strip("|").split("|") for r in table if not set(r) <= set("|-")]
+        body.append("<table>" + "".join(
+            "<tr>" + "".join(f"<{'th' if i == 0 else 'td'}>{_inline(c.strip())}"
+                             f"</{'th' if i == 0 else 'td'}>" for c in row) + "</tr>"
+            for i, row in enumerate(rows)) + "</table>")
+        table.clear()
+
+    for line in markdown.splitlines():
+        if line.startswith("|"):
+            table.append(line)
+            continue
+        flush_table()
+        if line.startswith("!["):
+            src = line[line.index("(") + 1:line.rindex(")")]
+            data = base64.b64encode((out / src).read_bytes()).decode()
+            body.append(f'<p><img alt="{html.escape(src)}" src="data:image/png;base64,{data}"'
+                        ' style="max-width:100%"></p>')
+        elif line.startswith("#"):
+            level = len(line) - len(line.lstrip("#"))
+            body.append(f"<h{level}>{_inline(line.lstrip('#').strip())}</h{level}>")
+        elif line.strip():
+            body.append(f"<p>{_inline(line)}</p>")
+    flush_table()
+    style = ("body{font-family:sans-serif;max-width:1000px;margin:2em auto;padding:0 1em}"
+             "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;"
+             "padding:4px 8px;font-size:13px}th{background:#f3f3f3}")
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>rl-scan report</title>"
+            f"<style>{style}</style></head><body>{''.join(body)}</body></html>")
+
+
+def _inline(text: str) -> str:
+    import re
+
+    text = html.escape(text)
+    text = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", text)
+    return re.sub(r"`(.+?)`", r"<code>\1</code>", text)

@@ -1,0 +1,101 @@
+"""Reports: statistics against hand-computed values, and a report built from a synthetic
+ablation study folder (every figure written, tables and marl-eval export correct)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import yaml
+
+from rl_scan.reports.build import build_report, condition_rows
+from rl_scan.reports.collect import collect
+from rl_scan.reports.stats import (
+    iqm,
+    probability_of_improvement,
+    stratified_bootstrap_ci,
+    wilson_interval,
+)
+
+
+def test_iqm_trims_a_quarter_from_each_end():
+    assert iqm([1, 2, 3, 4]) == 2.5  # drops 1 and 4
+    assert iqm([10, 0, 5, 6, 7, 100, 1, 2]) == pytest.approx((2 + 5 + 6 + 7) / 4)
+    assert iqm([3.0]) == 3.0
+
+
+def test_wilson_interval_by_hand():
+    # 8 of 10, z = 1.96: centre (0.8 + 1.9208/10) / 1.38416 = 0.71673,
+    # half 1.96 * sqrt(0.016 + 0.009604) / 1.38416 = 0.22660
+    lo, hi = wilson_interval(8, 10)
+    assert lo == pytest.approx(0.4902, abs=1e-3) and hi == pytest.approx(0.9433, abs=1e-3)
+    assert wilson_interval(0, 5)[0] == 0.0 and math.isnan(wilson_interval(0, 0)[0])
+
+
+def test_probability_of_improvement_counts_pairs_and_ties():
+    # pairs (x, y): (3,1) (3,3) (3,5) (4,1) (4,3) (4,5) -> 1 + .5 + 0 + 1 + 1 + 0 = 3.5 / 6
+    assert probability_of_improvement([3, 4], [1, 3, 5]) == pytest.approx(3.5 / 6)
+
+
+def test_stratified_bootstrap_keeps_strata_apart():
+    # each stratum is constant, so every resample has the same runs: a zero-width CI
+    lo, hi = stratified_bootstrap_ci([[0.2, 0.2], [0.9, 0.9]], statistic=lambda x: x.mean())
+    assert lo == pytest.approx(0.55) and hi == pytest.approx(0.55)
+
+
+def _study(root, finals: dict[str, list[float]], episodes: int = 3):
+    study = root / "ablate-algo-quick"
+    (study / "tune").mkdir(parents=True)
+    (study / "study.yaml").write_text(yaml.safe_dump(
+        {"study": "algo", "preset": "quick", "trials": 10,
+         "preset_overrides": {"evaluation_episodes": episodes}}))
+    for cond, values in finals.items():
+        for seed, final in enumerate(values):
+            trial = study / "tune" / f"run_trial_{cond}_{seed}"
+            trial.mkdir()
+            (trial / "condition.json").write_text(json.dumps(
+                {"algo": cond, "params": {"condition": cond, "seed": seed},
+                 "env_config": {"scenario": "ablation"}}))
+            evals = [{"training_iteration": 5, "env_steps": 20000, "coverage": final / 2,
+                      "success": 0.0},
+                     {"training_iteration": 10, "env_steps": 40000, "coverage": final,
+                      "success": 1.0 if final >= 0.95 else 0.0}]
+            (trial / "eval_metrics.json").write_text(json.dumps(evals))
+            (trial / "progress.csv").write_text(
+                "training_iteration,num_env_steps_sampled_lifetime,time_total_s\n"
+                "10,40000,100.0\n")
+    return study
+
+
+def test_report_on_a_synthetic_study(tmp_path):
+    _study(tmp_path, {"poca": [0.96, 0.90, 0.98, 0.70], "ppo": [0.50, 0.60, 0.97, 0.40]})
+    rows = {r["condition"]: r for r in condition_rows(collect(tmp_path).runs)}
+    poca = rows["poca"]
+    assert poca["final_mean"] == pytest.approx(0.885)
+    assert poca["final_std"] == pytest.approx(math.sqrt(
+        sum((x - 0.885) ** 2 for x in [0.96, 0.90, 0.98, 0.70]) / 4))
+    assert poca["iqm"] == pytest.approx((0.90 + 0.96) / 2)
+    # success: 2 of poca's runs reached 95 % -> 2 x 3 of 12 episodes
+    assert poca["success"] == pytest.approx(0.5) and poca["episodes"] == 12
+    assert poca["success_ci"] == pytest.approx(wilson_interval(6, 12))
+    assert poca["converged"] and not rows["ppo"]["converged"]
+    out = build_report(tmp_path, reference=False)
+    md = (out / "report.md").read_text()
+    assert (out / "figures" / "ablate-algo-quick.png").stat().st_size > 10_000
+    assert "Partial:** 8 of 10" in md  # the study planned 10 trials
+    # P(poca > ppo): poca wins 13 of the 16 pairs (.97 beats all four poca runs but .98)
+    assert "| poca > ppo | 0.81" in md
+    html = (out / "report.html").read_text()
+    assert "data:image/png;base64," in html and "<table>" in html
+    marl = json.loads((out / "marl_eval.json").read_text())
+    runs = marl["rl-scan"]["ablation"]["ablate-algo-quick:poca"]
+    assert len(runs) == 4
+    step = runs["run_0"]["step_1"]  # trial folders sorted: poca seed 0 first
+    assert step["step_count"] == 40000 and step["coverage"] == [0.96]
+    assert runs["run_0"]["absolute_metrics"] == {"coverage": [0.96], "success": [1.0]}
+
+
+def test_report_refuses_a_folder_without_runs(tmp_path):
+    with pytest.raises(ValueError, match="holds no rl-scan runs"):
+        build_report(tmp_path)
