@@ -103,16 +103,21 @@ def improvement_rows(kind: str, rows: list[dict[str, Any]]) -> list[dict[str, An
     return out
 
 
-def curve_band(runs: list[RunRecord]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Steps, mean, std and 95 % CI half-width of coverage over the runs' common steps."""
+def curve_band(runs: list[RunRecord]) -> tuple[np.ndarray, ...]:
+    """Steps, mean, std, 95 % CI half-width and run count of coverage at each evaluated
+    step (runs of unequal length: the statistics use the runs that reached the step)."""
     curves = [dict(r.curve) for r in runs if r.evals]
-    steps = sorted(set.intersection(*[set(c) for c in curves])) if curves else []
+    steps = sorted(set().union(*[set(c) for c in curves])) if curves else []
     if not steps:
-        return (np.array([]),) * 4
-    values = np.array([[c[s] for s in steps] for c in curves])
-    mean, std = values.mean(0), values.std(0)
-    half = 1.96 * values.std(0, ddof=1) / np.sqrt(len(curves)) if len(curves) > 1 else 0 * mean
-    return np.array(steps), mean, std, half
+        return (np.array([]),) * 5
+    mean, std, half, count = [], [], [], []
+    for s in steps:
+        v = np.array([c[s] for c in curves if s in c])
+        mean.append(v.mean())
+        std.append(v.std())
+        half.append(1.96 * v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else 0.0)
+        count.append(len(v))
+    return tuple(np.array(x) for x in (steps, mean, std, half, count))
 
 
 def plot_curves(runs: list[RunRecord], title: str, out: Path,
@@ -127,10 +132,15 @@ def plot_curves(runs: list[RunRecord], title: str, out: Path,
     for r in runs:
         by_cond[r.condition].append(r)
     for cond, rs in sorted(by_cond.items()):
-        steps, mean, std, half = curve_band(rs)
+        steps, mean, std, half, _ = curve_band(rs)
         if not len(steps):
             continue
         line, = ax.plot(steps, mean, label=f"{cond} (n={len(rs)})", lw=1.8)
+        if 1 < len(rs) <= 5:  # few seeds: show each run too
+            for r in rs:
+                if r.evals:
+                    x, y = zip(*r.curve)
+                    ax.plot(x, y, color=line.get_color(), lw=0.6, alpha=0.5)
         ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.15)
         ax.fill_between(steps, mean - half, mean + half, color=line.get_color(), alpha=0.3)
     if reference is not None and not math.isnan(reference):
