@@ -9,7 +9,6 @@ import copy
 
 import pytest
 import torch
-from ray.rllib.core.learner.training_data import TrainingData
 from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
 
 from rl_scan.algorithms.maml import meta_poca_config

@@ -12,7 +12,6 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.postprocessing.value_predictions import compute_value_targets
 
-from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca.learner import POCATorchLearner
 from rl_scan.algorithms.poca.losses import (
     clipped_policy_loss,

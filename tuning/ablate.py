@@ -27,12 +27,13 @@ from typing import Any
 import yaml
 from ray.tune import Callback
 
-from rl_scan.config import ConfigError, check_range, fail
+from rl_scan.config import check_range, fail
 from rl_scan.tuning.launch import (
     ENV_STEPS,
     EVAL_FILE,
     _init_ray,
     build_algorithm_config,
+    check_output_folder,
     check_resources,
     git_commit,
 )
@@ -162,11 +163,7 @@ def ablate(study: str, preset_name: str = "quick", *, seeds: int = 3, trials: in
     env_config = dict(env_config or {})
     name = name or f"ablate-{study}-{preset_name}"
     folder = Path(results_dir).resolve() / name
-    if folder.exists() and not resume:
-        raise ConfigError(f"study folder {str(folder)!r} exists: pass --resume to continue it "
-                          "or choose another --name")
-    if resume and not (folder / STUDY_FILE).is_file():
-        raise ConfigError(f"--resume: no study to resume in {str(folder)!r}")
+    check_output_folder(folder, STUDY_FILE, "study", resume)
     space, sampler, grid_size = search_space(study, seeds)
     for params in _example_params(study, space):  # every condition builds before Ray starts
         algo, env, kw = condition_run(study, params, env_config)

@@ -79,6 +79,15 @@ def git_commit() -> str:
         return "unknown"
 
 
+def check_output_folder(folder: Path, marker: str, what: str, resume: bool) -> None:
+    """A new run/study needs a fresh folder; a resumed one needs its ``marker`` file."""
+    if folder.exists() and not resume:
+        raise ConfigError(f"{what} folder {str(folder)!r} exists: pass --resume to continue "
+                          "it or choose another --name")
+    if resume and not (folder / marker).is_file():
+        raise ConfigError(f"--resume: no {what} to resume in {str(folder)!r}")
+
+
 def required_cpus(preset: TrainPreset) -> int:
     """CPU bundles of one trial: the training process plus one per env runner."""
     return 1 + preset.num_env_runners
@@ -136,11 +145,7 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
         fail("algo", algo, f"one of {sorted(ALGORITHMS)}")
     name = name or f"{algo}_{env_cfg.scenario.replace(':', '')}_{preset_name}_s{seed}"
     run_dir = Path(results_dir).resolve() / name
-    if run_dir.exists() and not resume:
-        raise ConfigError(f"run folder {str(run_dir)!r} exists: pass --resume to continue it "
-                          "or choose another --name")
-    if resume and not (run_dir / RUN_FILE).is_file():
-        raise ConfigError(f"--resume: no run to resume in {str(run_dir)!r}")
+    check_output_folder(run_dir, RUN_FILE, "run", resume)
     if init_from is not None:
         from rl_scan.algorithms.rollout import resolve_checkpoint
 

@@ -102,7 +102,7 @@ def _run(folder: Path, name: str, **kwargs) -> Path:
 
 
 def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
-                 methods: list[str] = list(METHODS), tests: list[str] | None = None,
+                 methods: tuple[str, ...] | list[str] = METHODS, tests: list[str] | None = None,
                  seeds: int = 3, env_config: dict[str, Any] | None = None,
                  protocol_overrides: dict[str, int] | None = None, console=None) -> dict:
     """Pre-train and adapt every method on every test scene and seed; returns the summary."""
@@ -113,6 +113,7 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
         fail("preset", preset, f"one of {sorted(PROTOCOLS)}")
     protocol = Protocol(**{**PROTOCOLS[preset].__dict__, **(protocol_overrides or {})})
     tests = tests or [f"test:{i}" for i in range(N_TEST)]
+    methods = list(methods)
     validate(methods, tests, seeds, protocol)
     env_config = dict(env_config or {})
     root = Path(results_dir).resolve() / name
@@ -201,15 +202,16 @@ def format_table(summary: dict) -> str:
     with the paper's scanning success rates beside ours."""
     lines = ["| method | final coverage % | env steps to 80 % (runs reaching it) | "
              "success % | paper's scanning success % |", "|---|---|---|---|---|"]
+    def pm(stats, key, scale=1.0, fmt="{:.1f}"):
+        m, sd = stats[key]["mean"], stats[key]["std"]
+        return "-" if math.isnan(m) else f"{fmt.format(m * scale)} ± {fmt.format(sd * scale)}"
+
     for method, s in summary["methods"].items():
-        def pm(key, scale=1.0, fmt="{:.1f}"):
-            m, sd = s[key]["mean"], s[key]["std"]
-            return "-" if math.isnan(m) else f"{fmt.format(m * scale)} ± {fmt.format(sd * scale)}"
         reach = s["reached_80"]["mean"]
-        lines.append(f"| {method} | {pm('final_coverage', 100)} | "
-                     f"{pm('steps_to_80', 1, '{:,.0f}')} "
+        lines.append(f"| {method} | {pm(s, 'final_coverage', 100)} | "
+                     f"{pm(s, 'steps_to_80', 1, '{:,.0f}')} "
                      f"({'-' if math.isnan(reach) else f'{100 * reach:.0f} %'}) | "
-                     f"{pm('success', 100)} | {PAPER_SUCCESS.get(method, '-')} |")
+                     f"{pm(s, 'success', 100)} | {PAPER_SUCCESS.get(method, '-')} |")
     meta, poca = summary["methods"].get("meta-mrss"), summary["methods"].get("poca")
     if meta and poca:
         a, b = meta["steps_to_80"]["mean"], poca["steps_to_80"]["mean"]
