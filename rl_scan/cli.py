@@ -188,6 +188,29 @@ def _render_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay_cmd(args: argparse.Namespace) -> int:
+    from rl_scan.env_args import env_config_from_args
+    from rl_scan.envs.core import ScanCore
+    from rl_scan.envs.heuristics import GreedyTeam
+    from rl_scan.reports.replay import record_episode, write_replay
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".html":
+        raise ConfigError(f"out={str(out)!r} is invalid: allowed an .html path")
+    if args.every < 1:
+        raise ConfigError(f"every={args.every} is invalid: allowed an integer >= 1")
+    if args.run:
+        core, team, label = _checkpoint_team(args)
+    else:
+        core = ScanCore(env_config_from_args(args))
+        team, label = GreedyTeam(core), "greedy team"
+    rec = record_episode(core, team, seed=args.seed)
+    write_replay(rec, out, every=args.every, title=f"{label} on {core.config.scenario}:")
+    print(f"wrote {out}: {label}, coverage {100 * rec.metrics['coverage']:.1f}% in "
+          f"{len(rec.paths) - 1} steps")
+    return 0
+
+
 def _checkpoint_team(args: argparse.Namespace):
     """ScanCore on the run's env config (flags override it) and the checkpoint's team."""
     from rl_scan.algorithms.rollout import (
@@ -201,7 +224,7 @@ def _checkpoint_team(args: argparse.Namespace):
     from rl_scan.envs.core import ScanCore
     from rl_scan.envs.sim.env_config import make_env_config
 
-    ckpt = resolve_checkpoint(args.checkpoint)
+    ckpt = resolve_checkpoint(getattr(args, "checkpoint", None) or args.run)
     config = make_env_config(deep_merge(run_env_config(ckpt), env_mapping_from_args(args)))
     core = ScanCore(config)
     import torch
@@ -442,6 +465,20 @@ def build_parser() -> argparse.ArgumentParser:
     ab.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
     add_env_args(ab)
     ab.set_defaults(func=_ablate_cmd)
+
+    rl = sub.add_parser(
+        "replay", formatter_class=fmt, help="interactive 3D HTML replay of an episode",
+        description="Play one evaluation episode with a run's team (sampled actions, as "
+                    "evaluation does) or, without RUN_DIR, the scripted greedy team, and "
+                    "write a self-contained plotly HTML: cells turning from green to blue "
+                    "as they are scanned, robot paths, a slider and a play button.")
+    rl.add_argument("run", nargs="?", default=None,
+                    help="a run, trial or checkpoint folder (default: the greedy team)")
+    rl.add_argument("--out", default="replay.html", help="output .html")
+    rl.add_argument("--every", type=int, default=5, help="one frame every N env steps")
+    rl.add_argument("--seed", type=int, default=0, help="reset seed")
+    add_env_args(rl)
+    rl.set_defaults(func=_replay_cmd)
 
     rp = sub.add_parser(
         "report", formatter_class=fmt, help="Markdown + HTML report of a results folder",
