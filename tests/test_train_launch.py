@@ -121,3 +121,12 @@ def test_an_env_error_is_survived_through_failure_config(ray_session, tmp_path):
     assert int(float(rows[-1]["num_env_steps_sampled_lifetime"])) == 1600
     evals = json.loads((run_dir / "eval_metrics.json").read_text())
     assert evals[-1]["training_iteration"] == 4
+
+
+def test_default_run_names_are_folder_safe():
+    from rl_scan.tuning.launch import scenario_label
+
+    assert scenario_label("test:3") == "test3"
+    assert scenario_label("train:*") == "train-any"
+    assert scenario_label("tests/data/one_box.yaml") == "one_box"
+    assert scenario_label("ablation") == "ablation"

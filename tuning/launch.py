@@ -69,6 +69,14 @@ def build_algorithm_config(algo: str, env_config: dict[str, Any], preset: TrainP
     return config
 
 
+def scenario_label(scenario: str) -> str:
+    """A folder-name-safe scenario label: test:3 -> test3, train:* -> train-any,
+    path/to/scene.yaml -> scene."""
+    if scenario.endswith((".yaml", ".yml")):
+        return Path(scenario).stem
+    return scenario.replace(":*", "-any").replace(":", "")
+
+
 def git_commit() -> str:
     """The commit of the rl-scan source tree, or 'unknown' outside a git checkout."""
     try:
@@ -143,7 +151,7 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
     env_cfg = make_env_config(deep_merge(preset.env_overrides, env_config))
     if algo not in ALGORITHMS:
         fail("algo", algo, f"one of {sorted(ALGORITHMS)}")
-    name = name or f"{algo}_{env_cfg.scenario.replace(':', '')}_{preset_name}_s{seed}"
+    name = name or f"{algo}_{scenario_label(env_cfg.scenario)}_{preset_name}_s{seed}"
     run_dir = Path(results_dir).resolve() / name
     check_output_folder(run_dir, RUN_FILE, "run", resume)
     if init_from is not None:

@@ -32,7 +32,7 @@ import numpy as np
 from rl_scan import metrics as M
 from rl_scan.config import ConfigError, check_range, fail
 from rl_scan.envs.sim.scenarios import N_TEST
-from rl_scan.tuning.launch import EVAL_FILE, RUN_FILE, train
+from rl_scan.tuning.launch import EVAL_FILE, RUN_FILE, scenario_label, train
 
 METHODS = ("meta-mrss", "dr", "transfer", "poca")
 PAPER_SUCCESS = {"meta-mrss": 87.12, "dr": 68.54, "poca": 60.16, "transfer": 71.74}
@@ -135,7 +135,7 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
                 done += 1
                 console.print(f"[bold]meta-mrss[/] run {done}/{total}: adapt {method} on "
                               f"{test} (seed {seed}, {protocol.adapt_steps:,} env steps)")
-                _run(root / "adapt", f"{method}_{test.replace(':', '')}_s{seed}", algo="poca",
+                _run(root / "adapt", f"{method}_{scenario_label(test)}_s{seed}", algo="poca",
                      env_config={**env_config, "scenario": test},
                      preset_name=protocol.train_preset, seed=seed, init_from=init,
                      console=console,
@@ -168,7 +168,7 @@ def summarize(root: Path, methods: list[str], tests: list[str], seeds: int) -> d
         for seed in range(seeds):
             rows = []
             for test in tests:
-                run = root / "adapt" / f"{method}_{test.replace(':', '')}_s{seed}"
+                run = root / "adapt" / f"{method}_{scenario_label(test)}_s{seed}"
                 path = run / EVAL_FILE
                 if not path.is_file():
                     out["missing"].append(str(run))
