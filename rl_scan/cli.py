@@ -550,11 +550,25 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    ray_was_up = _ray_is_up()
     try:
         return args.func(args)
     except (ConfigError, ValueError) as e:
         print(f"rl-scan {args.command}: error: {e}", file=sys.stderr)
         return 2
+    finally:
+        if not ray_was_up and _ray_is_up():
+            # A command that started Ray stops it, so in-process callers (notebooks, tests)
+            # can start their own Ray afterwards ("ray.init twice" otherwise).
+            import ray
+
+            ray.shutdown()
+
+
+def _ray_is_up() -> bool:
+    """Whether Ray is initialised in this process, without importing Ray if nothing did."""
+    ray = sys.modules.get("ray")
+    return ray is not None and ray.is_initialized()
 
 
 if __name__ == "__main__":

@@ -47,6 +47,8 @@ def test_bad_study_input_fails_before_anything_is_written(tmp_path, capsys, argv
     code = main([*argv, "--preset", "smoke", "--results", str(tmp_path)])
     assert code == 2 and message in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+    # the resource check starts Ray to count CPUs; the command must stop what it started
+    assert "ray" not in sys.modules or not sys.modules["ray"].is_initialized()
 
 
 @pytest.mark.slow
