@@ -6,6 +6,10 @@ logged under ``scan/<name>`` as windowed means, so they appear in
 ``result["env_runners"]["scan/coverage"]`` (and under ``evaluation`` for eval runs).
 ``steps_to_X`` is logged only for episodes that reached X, beside ``scan/reached_X``.
 
+Every training result also gets ``eval_coverage`` (top level): the coverage of the most
+recent evaluation (NaN before the first). Tune ranks checkpoints by it, so a run keeps its
+best checkpoints beside the latest one (checkpoints fall on evaluation iterations).
+
 It also stops training on a non-finite loss: the iteration fails before its checkpoint
 is written, so the last good checkpoint is the one a resume (or Tune's retry) uses.
 """
@@ -20,6 +24,8 @@ from rl_scan import metrics as M
 
 PREFIX = "scan/"
 WINDOW = 100
+EVAL_SCORE = "eval_coverage"
+"""Top-level result key: the latest evaluation's mean coverage (checkpoint score)."""
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -50,6 +56,8 @@ class ScanMetricsCallback(RLlibCallback):
     def on_train_result(self, *, algorithm=None, metrics_logger=None, result: dict,
                         **kwargs) -> None:
         check_losses_finite(result)
+        evaluation = result.get("evaluation", {}).get("env_runners", {})
+        result[EVAL_SCORE] = float(evaluation.get(PREFIX + "coverage", math.nan))
 
     def on_episode_end(self, *, episode, metrics_logger=None, **kwargs) -> None:
         if metrics_logger is None:

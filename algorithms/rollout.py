@@ -39,6 +39,44 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return found[-1]
 
 
+def best_checkpoint(path: str | Path) -> tuple[Path, dict[str, float]]:
+    """The kept checkpoint of a run (or trial) folder with the highest evaluation coverage.
+
+    Scores are the evaluations Tune recorded with each checkpoint (``eval_coverage``, or
+    RLlib's nested ``evaluation/env_runners/scan/coverage`` for older runs). Returns the
+    checkpoint folder and {training_iteration, env_steps, eval_coverage}.
+    """
+    from ray.tune import ExperimentAnalysis
+
+    from rl_scan.algorithms.callbacks import EVAL_SCORE, PREFIX
+
+    path = Path(path).resolve()
+    experiment = next((p for p in (path / "tune", path, path.parent)
+                       if any(p.glob("experiment_state-*.json"))), None)
+    if experiment is None:
+        raise ConfigError(f"checkpoint={str(path)!r} is invalid: --best needs a run or trial "
+                          "folder written by Tune (rl-scan train, ablate, meta-mrss)")
+    candidates = []
+    for trial in ExperimentAnalysis(str(experiment)).trials:
+        for kept in trial.run_metadata.checkpoint_manager.best_checkpoint_results:
+            folder = Path(kept.checkpoint.path)
+            if path not in (experiment, path / "tune") and path not in folder.parents:
+                continue  # another trial of the same study
+            m = kept.metrics
+            score = m.get(EVAL_SCORE)
+            if score is None:
+                score = m.get("evaluation", {}).get("env_runners", {}).get(PREFIX + "coverage")
+            if score is not None and score == score and (folder / MODULES).is_dir():
+                candidates.append((float(score), folder, m))
+    if not candidates:
+        raise ConfigError(f"checkpoint={str(path)!r} is invalid: no kept checkpoint there "
+                          "carries an evaluation score")
+    score, folder, m = max(candidates, key=lambda c: (c[0], c[2].get("training_iteration", 0)))
+    return folder, {"training_iteration": int(m.get("training_iteration", 0)),
+                    "env_steps": int(m.get("num_env_steps_sampled_lifetime", 0)),
+                    "eval_coverage": score}
+
+
 def run_env_config(checkpoint: Path) -> dict[str, Any]:
     """The env config recorded in the run.yaml above a checkpoint ({} if there is none)."""
     for parent in [checkpoint, *checkpoint.parents]:

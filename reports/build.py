@@ -41,6 +41,10 @@ from rl_scan.reports.stats import (
 CONVERGED = 0.80
 RULE = (f"A condition **converged** if the mean over seeds of its final evaluation coverage "
         f"is at least {CONVERGED:.0%}; otherwise it **failed**.")
+SPEED_AT = 0.80
+SPEED = (f"**Learning / adaptation speed** is defined up front as the env steps of a run's "
+         f"first evaluation whose mean coverage reaches {SPEED_AT:.0%}; a condition reports the "
+         "mean over the runs that reached it and how many did.")
 PAPER_TABLE_II = {"1": "succeed", "2": "failed", "3": "failed", "4": "failed",
                   "5": "failed", "6": "succeed", "7": "failed"}
 PAPER_META = {"meta-mrss": "87.12 %", "dr": "68.54 %", "poca": "60.16 %",
@@ -82,6 +86,8 @@ def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
         successes = sum(r.final_success * r.eval_episodes for r in scored
                         if not math.isnan(r.final_success))
         mean, std = mean_std(finals)
+        speeds = [r.steps_to(SPEED_AT) for r in scored]
+        reached = [x for x in speeds if not math.isnan(x)]
         rows.append({
             "condition": cond, "runs": len(rs), "scored": len(scored),
             "final_mean": mean, "final_std": std, "iqm": iqm(finals) if finals else math.nan,
@@ -89,14 +95,18 @@ def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
             "success": successes / episodes if episodes else math.nan,
             "success_ci": wilson_interval(successes, episodes), "episodes": episodes,
             "converged": (not math.isnan(mean)) and mean >= CONVERGED,
-            "finals": finals})
+            "speed": float(np.mean(reached)) if reached else math.nan,
+            "speed_reached": len(reached), "finals": finals})
     return rows
 
 
 def improvement_rows(kind: str, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     finals = {r["condition"]: r["finals"] for r in rows}
+    pairs = COMPARISONS.get(kind, [])
+    if kind == "runs":  # loose training runs: POCA vs PPO on each scenario both ran on
+        pairs = [(c, "ppo" + c[len("poca"):]) for c in finals if c.startswith("poca on ")]
     out = []
-    for a, b in COMPARISONS.get(kind, []):
+    for a, b in pairs:
         if finals.get(a) and finals.get(b):
             out.append({"x": a, "y": b, "p": probability_of_improvement(finals[a], finals[b]),
                         "ci": probability_of_improvement_ci(finals[a], finals[b])})
@@ -179,7 +189,8 @@ def _fmt(x: float, pct: bool = True) -> str:
 
 def _table(rows: list[dict[str, Any]], kind: str) -> list[str]:
     head = ["condition", "runs", "final coverage % (mean ± std)", "IQM % [95 % CI]",
-            "success % [95 % CI] (episodes)", "verdict"]
+            "success % [95 % CI] (episodes)", f"env steps to {SPEED_AT:.0%} (reached)",
+            "verdict"]
     if kind == "comm":
         head.append("paper (Table II)")
     if kind == "adapt":
@@ -192,12 +203,38 @@ def _table(rows: list[dict[str, Any]], kind: str) -> list[str]:
                  f"{_fmt(r['final_mean'])} ± {_fmt(r['final_std'])}",
                  f"{_fmt(r['iqm'])} [{_fmt(lo)}, {_fmt(hi)}]",
                  f"{_fmt(r['success'])} [{_fmt(slo)}, {_fmt(shi)}] ({r['episodes']})",
+                 f"{_fmt(r['speed'], False)} ({r['speed_reached']}/{r['scored']})",
                  "converged" if r["converged"] else "failed"]
         if kind == "comm":
             cells.append(PAPER_TABLE_II.get(r["condition"], "(not in the paper)"))
         if kind == "adapt":
             cells.append(PAPER_META.get(r["condition"], "-"))
         lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def best_checkpoint_table(runs: list[RunRecord]) -> list[str]:
+    """Secondary numbers: each run's best kept checkpoint re-evaluated (evaluate --best)."""
+    rows = [r for r in runs if r.best_eval]
+    if not rows:
+        return []
+    lines = ["", "Secondary (not the headline): each run's best kept checkpoint, chosen by its "
+             "training-time evaluation and re-evaluated on more episodes with "
+             "`rl-scan evaluate RUN --best`. Choosing the best is biased upwards; the "
+             "headline above uses final checkpoints.", "",
+             "| run | condition | checkpoint at env steps | training-time eval % | "
+             "re-evaluated coverage % (mean ± std) | success % [95 % CI] (episodes) |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        b = r.best_eval
+        cov, succ = b.get("coverage", []), b.get("success", [])
+        mean, std = mean_std(cov)
+        wins = int(sum(succ))
+        lo, hi = wilson_interval(wins, len(succ))
+        lines.append(f"| {r.path.name} | {r.condition} | {int(b.get('env_steps', 0)):,} | "
+                     f"{_fmt(b.get('eval_coverage', math.nan))} | {_fmt(mean)} ± {_fmt(std)} | "
+                     f"{_fmt(wins / len(succ) if succ else math.nan)} [{_fmt(lo)}, {_fmt(hi)}] "
+                     f"({len(succ)}) |")
     return lines
 
 
@@ -253,7 +290,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
     md = [f"# rl-scan report: {results_dir.name}", "",
           f"{len(data.runs)} runs read from `{results_dir}`. Scores are final-checkpoint "
           "scores (each run's last evaluation); bands are ± 1 std (light) and a 95 % CI of "
-          "the mean (dark) over seeds. " + RULE, "", DIFFERENCES, ""]
+          "the mean (dark) over seeds. " + RULE, "", SPEED, "", DIFFERENCES, ""]
     groups: dict[str, list[RunRecord]] = defaultdict(list)
     for r in data.runs:
         groups[r.group].append(r)
@@ -276,6 +313,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         md += ["", f"![{group}](figures/{fig.name})", ""]
         rows = condition_rows(runs)
         md += _table(rows, kind)
+        md += best_checkpoint_table(runs)
         if ref is not None and not math.isnan(ref):
             md += ["", f"Scripted greedy team on {scenarios[0]}: {100 * ref:.1f} % coverage."]
         imp = improvement_rows(kind, rows)

@@ -19,6 +19,7 @@ from typing import Any
 
 import yaml
 
+from rl_scan.metrics import BEST_EVAL_FILE, EVAL_FILE
 from rl_scan.tuning.presets import get_preset
 
 
@@ -36,6 +37,7 @@ class RunRecord:
     time_total_s: float = math.nan
     scenario: str = ""
     algo: str = ""
+    best_eval: dict[str, Any] | None = None  # best_checkpoint_eval.json (evaluate --best)
 
     @property
     def curve(self) -> list[tuple[int, float]]:
@@ -48,6 +50,11 @@ class RunRecord:
     @property
     def final_success(self) -> float:
         return float(self.evals[-1].get("success", math.nan)) if self.evals else math.nan
+
+    def steps_to(self, coverage: float) -> float:
+        """Env steps of the first evaluation whose mean coverage reached ``coverage``
+        (NaN if none did): the report's learning / adaptation speed."""
+        return next((float(s) for s, c in self.curve if c >= coverage), math.nan)
 
     @property
     def env_steps_per_s(self) -> float:
@@ -87,11 +94,12 @@ def read_run(folder: Path, group: str, condition: str | None = None) -> RunRecor
     env = meta.get("env_config", {})
     return RunRecord(group=group, condition=condition or meta.get("algo", "?"),
                      seed=int(meta.get("seed", 0)), path=folder,
-                     evals=_json(folder / "eval_metrics.json") or [],
+                     evals=_json(folder / EVAL_FILE) or [],
                      eval_episodes=int(meta.get("preset_config", {}).get(
                          "evaluation_episodes", 0)),
                      env_steps=steps, time_total_s=seconds,
-                     scenario=env.get("scenario", ""), algo=meta.get("algo", ""))
+                     scenario=env.get("scenario", ""), algo=meta.get("algo", ""),
+                     best_eval=_json(folder / BEST_EVAL_FILE))
 
 
 def read_study(folder: Path) -> tuple[list[RunRecord], dict[str, Any]]:
@@ -108,11 +116,12 @@ def read_study(folder: Path) -> tuple[list[RunRecord], dict[str, Any]]:
                  ", ".join(f"{k}={_short(v)}" for k, v in sorted(params.items()) if k != "seed"))
         steps, seconds = _progress_tail(trial)
         records.append(RunRecord(group=group, condition=label, seed=int(params.get("seed", 0)),
-                                 path=trial, evals=_json(trial / "eval_metrics.json") or [],
+                                 path=trial, evals=_json(trial / EVAL_FILE) or [],
                                  eval_episodes=preset.evaluation_episodes, env_steps=steps,
                                  time_total_s=seconds,
                                  scenario=cond.get("env_config", {}).get("scenario", "ablation"),
-                                 algo=cond.get("algo", "")))
+                                 algo=cond.get("algo", ""),
+                                 best_eval=_json(trial / BEST_EVAL_FILE)))
     return records, study
 
 

@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 from rl_scan.config import ConfigError, to_dict
+from rl_scan.metrics import BEST_EVAL_FILE, EVAL_FILE
 
 EXAMPLES = """examples:
   rl-scan scenario show ablation
@@ -224,7 +225,13 @@ def _checkpoint_team(args: argparse.Namespace):
     from rl_scan.envs.core import ScanCore
     from rl_scan.envs.sim.env_config import make_env_config
 
-    ckpt = resolve_checkpoint(getattr(args, "checkpoint", None) or args.run)
+    target = getattr(args, "checkpoint", None) or args.run
+    if getattr(args, "best", False):
+        from rl_scan.algorithms.rollout import best_checkpoint
+
+        ckpt, args.best_info = best_checkpoint(target)
+    else:
+        ckpt = resolve_checkpoint(target)
     config = make_env_config(deep_merge(run_env_config(ckpt), env_mapping_from_args(args)))
     core = ScanCore(config)
     import torch
@@ -267,7 +274,26 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     Console().print(table)
     if args.json:
         _write_json(args.json, {"checkpoint": label, "episodes": runs, "summary": summary})
+    if args.best:
+        _record_best_eval(core, label, args, runs)
     return 0
+
+
+def _record_best_eval(core, label: str, args: argparse.Namespace, runs: list[dict]) -> None:
+    """Write best_checkpoint_eval.json beside the run's eval_metrics.json (for the report)."""
+    ckpt = Path(label.removeprefix("checkpoint "))
+    folder = next((p for p in ckpt.parents if (p / EVAL_FILE).is_file()), None)
+    if folder is None:
+        print(f"note: no {EVAL_FILE} above {ckpt}; nothing recorded for the report")
+        return
+    out = folder / BEST_EVAL_FILE
+    _write_json(str(out), {**args.best_info, "checkpoint": str(ckpt),
+                           "scenario": core.scenario_name, "episodes": len(runs),
+                           "seed": args.seed, "deterministic": args.deterministic,
+                           "coverage": [r["coverage"] for r in runs],
+                           "success": [r["success"] for r in runs]})
+    print(f"best checkpoint (iteration {args.best_info['training_iteration']}, training-time "
+          f"eval {args.best_info['eval_coverage']:.3f}) recorded in {out}")
 
 
 def _train_cmd(args: argparse.Namespace) -> int:
@@ -520,6 +546,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "success, steps to 50/80/95 %%, collisions and returns per kind, beside "
                     "the scripted greedy team.")
     ev.add_argument("checkpoint", help="a checkpoint, trial or run folder (newest checkpoint)")
+    ev.add_argument("--best", action="store_true",
+                    help="use the run's best kept checkpoint (by its training-time evaluation) "
+                         f"and record the result in {BEST_EVAL_FILE} in the run folder, where "
+                         "`rl-scan report` shows it as a secondary, selection-biased number")
     ev.add_argument("--episodes", type=int, default=10)
     ev.add_argument("--seed", type=int, default=0, help="reset seed of the first episode")
     ev.add_argument("--deterministic", action="store_true",

@@ -99,3 +99,38 @@ def test_report_on_a_synthetic_study(tmp_path):
 def test_report_refuses_a_folder_without_runs(tmp_path):
     with pytest.raises(ValueError, match="holds no rl-scan runs"):
         build_report(tmp_path)
+
+
+def _run(root, name: str, algo: str, seed: int, curve: list[float], best=None):
+    run = root / name
+    (run / "tune" / "trial").mkdir(parents=True)
+    (run / "run.yaml").write_text(yaml.safe_dump(
+        {"algo": algo, "seed": seed, "preset_config": {"evaluation_episodes": 3},
+         "env_config": {"scenario": "ablation"}}))
+    (run / "eval_metrics.json").write_text(json.dumps(
+        [{"training_iteration": 5 * (i + 1), "env_steps": 20000 * (i + 1), "coverage": c,
+          "success": float(c >= 0.95)} for i, c in enumerate(curve)]))
+    if best is not None:
+        (run / "best_checkpoint_eval.json").write_text(json.dumps(best))
+
+
+def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path):
+    _run(tmp_path, "poca_s0", "poca", 0, [0.5, 0.85, 0.9])  # 80 % first at 40k
+    _run(tmp_path, "poca_s1", "poca", 1, [0.81, 0.7, 0.96],  # at 20k
+         best={"env_steps": 60000, "eval_coverage": 0.96, "coverage": [0.9, 1.0, 0.95, 0.85],
+               "success": [0.0, 1.0, 1.0, 0.0]})
+    _run(tmp_path, "ppo_s0", "ppo", 0, [0.3, 0.5, 0.6])  # never
+    _run(tmp_path, "ppo_s1", "ppo", 1, [0.4, 0.6, 0.82])  # at 60k
+    rows = {r["condition"]: r for r in condition_rows(collect(tmp_path).runs)}
+    assert rows["poca on ablation"]["speed"] == 30000 and rows["poca on ablation"][
+        "speed_reached"] == 2
+    assert rows["ppo on ablation"]["speed"] == 60000 and rows["ppo on ablation"][
+        "speed_reached"] == 1
+    md = (build_report(tmp_path, reference=False) / "report.md").read_text()
+    assert "| 30,000 (2/2) |" in md and "| 60,000 (1/2) |" in md
+    # finals poca (0.9, 0.96) vs ppo (0.6, 0.82): poca wins all 4 pairs
+    assert "| poca on ablation > ppo on ablation | 1.00" in md
+    # best checkpoint of poca_s1: mean 0.925, population std 0.0559, 2 of 4 successes
+    assert "| poca_s1 | poca on ablation | 60,000 | 96.0 | 92.5 ± 5.6 | 50.0 [15.0, 85.0] (4) |" \
+        in md
+    assert "poca_s0 |" not in md.split("Secondary")[1].split("| run | env steps")[0]

@@ -65,6 +65,29 @@ def test_evaluate_and_render_a_checkpoint(ppo_run, tmp_path, capsys, monkeypatch
     assert main(["evaluate", str(tmp_path)]) == 2  # no checkpoint there: one-line error
 
 
+def test_best_checkpoints_are_kept_and_re_evaluated_for_the_report(ray_session, tmp_path,
+                                                                   capsys):
+    """6 iterations, a checkpoint each: Tune keeps the 3 best by evaluation coverage plus the
+    latest; `evaluate --best` plays the best one and records it beside eval_metrics.json."""
+    run = train("ppo", {"scenario": "test:2"}, "smoke", seed=1, results_dir=tmp_path,
+                preset_overrides={"total_env_steps": 2400})
+    cov = {e["training_iteration"]: e["coverage"]
+           for e in json.loads((run / "eval_metrics.json").read_text())}
+    assert sorted(cov) == [1, 2, 3, 4, 5, 6]
+    # checkpoint_00000k holds iteration k+1
+    kept = {int(p.name.split("_")[1]) + 1 for p in (run / "tune" / "trial").glob("checkpoint_*")}
+    deleted = set(cov) - kept
+    assert 6 in kept and len(kept) == (3 if 6 in sorted(cov, key=cov.get)[-3:] else 4)
+    assert min(cov[i] for i in kept - {6}) >= max(cov[i] for i in deleted)
+    assert main(["evaluate", str(run), "--best", "--episodes", "2", "--no-reference"]) == 0
+    best = json.loads((run / "best_checkpoint_eval.json").read_text())
+    assert best["eval_coverage"] == pytest.approx(max(cov.values()))
+    assert cov[best["training_iteration"]] == pytest.approx(max(cov.values()))
+    assert best["env_steps"] == 400 * best["training_iteration"]
+    assert len(best["coverage"]) == 2 and best["scenario"] == "test:2"
+    assert "recorded in" in capsys.readouterr().out
+
+
 def test_bad_input_fails_before_ray_work(tmp_path):
     with pytest.raises(ConfigError, match="algo='dqn'"):
         train("dqn", {}, "smoke", results_dir=tmp_path)

@@ -27,11 +27,12 @@ from typing import Any
 import yaml
 from ray.tune import Callback
 
+from rl_scan.algorithms.callbacks import EVAL_SCORE
 from rl_scan.config import check_range, fail
 from rl_scan.tuning.launch import (
     ENV_STEPS,
-    EVAL_FILE,
     _init_ray,
+    append_eval,
     build_algorithm_config,
     check_output_folder,
     check_resources,
@@ -47,7 +48,7 @@ GRIDS = {
 }
 STUDIES = (*GRIDS, "hpo")
 STUDY_FILE, OPTUNA_DB, TUNE_DIR = "study.yaml", "optuna.db", "tune"
-METRIC = "eval_coverage"  # the last evaluation's mean coverage: the final-checkpoint score
+METRIC = EVAL_SCORE  # the last evaluation's mean coverage: the final-checkpoint score
 
 
 def condition_run(study: str, params: dict[str, Any], base_env: dict[str, Any]
@@ -96,7 +97,7 @@ def run_trial(params: dict[str, Any], study: str, preset_name: str,
             evaluation = result.get("evaluation", {}).get("env_runners", {})
             if preset.evaluation_interval and it % preset.evaluation_interval == 0 and evaluation:
                 last_eval = float(evaluation.get("scan/coverage", math.nan))
-                _append_eval(trial_dir, it, steps, result, evaluation)
+                append_eval(trial_dir, result, evaluation)
             done = steps >= preset.total_env_steps
             metrics = {ENV_STEPS: steps, METRIC: 0.0 if math.isnan(last_eval) else last_eval,
                        "coverage": result.get("env_runners", {}).get("scan/coverage", math.nan),
@@ -111,18 +112,6 @@ def run_trial(params: dict[str, Any], study: str, preset_name: str,
                 return
     finally:
         algorithm.stop()
-
-
-def _append_eval(trial_dir: Path, it: int, steps: int, result: dict, evaluation: dict) -> None:
-    path = trial_dir / EVAL_FILE
-    entries = json.loads(path.read_text()) if path.is_file() else []
-    entries = [e for e in entries if e["training_iteration"] < it]  # re-run after restore
-    entries.append({"training_iteration": it, "env_steps": steps,
-                    "time_total_s": result.get("time_total_s"),
-                    "episode_return_mean": evaluation.get("episode_return_mean"),
-                    **{k[len("scan/"):]: v for k, v in evaluation.items()
-                       if k.startswith("scan/")}})
-    path.write_text(json.dumps(entries, indent=1, default=float))
 
 
 def search_space(study: str, seeds: int):
@@ -206,7 +195,10 @@ def ablate(study: str, preset_name: str = "quick", *, seeds: int = 3, trials: in
             run_config=tune.RunConfig(
                 storage_path=str(folder), name=TUNE_DIR, verbose=0,
                 failure_config=tune.FailureConfig(max_failures=2),
-                checkpoint_config=tune.CheckpointConfig(num_to_keep=2),
+                # the 2 best checkpoints by evaluation coverage, and always the latest
+                checkpoint_config=tune.CheckpointConfig(
+                    num_to_keep=2, checkpoint_score_attribute=METRIC,
+                    checkpoint_score_order="max"),
                 callbacks=[StudyProgress(num_samples)]))
     grid = tuner.fit()
     failed = [r for r in grid if r.error]

@@ -26,15 +26,17 @@ import yaml
 os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # Tune's boxed tables; we print one line/iter
 from ray.tune import Callback  # noqa: E402
 
+from rl_scan.algorithms.callbacks import EVAL_SCORE
 from rl_scan.config import ConfigError, deep_merge, fail, to_dict
 from rl_scan.envs.sim.env_config import make_env_config
+from rl_scan.metrics import EVAL_FILE
 from rl_scan.tuning.presets import TrainPreset, get_preset
 
 # name -> (module, function building the AlgorithmConfig)
 ALGORITHMS = {"ppo": ("rl_scan.algorithms.ppo", "ppo_config"),
               "poca": ("rl_scan.algorithms.poca", "poca_config"),
               "meta-poca": ("rl_scan.algorithms.maml", "meta_poca_config")}
-RUN_FILE, EVAL_FILE = "run.yaml", "eval_metrics.json"
+RUN_FILE = "run.yaml"
 TUNE_DIR = "tune"  # Tune's own experiment folder inside the run folder (Tune re-syncs it)
 ENV_STEPS = "num_env_steps_sampled_lifetime"
 
@@ -108,6 +110,20 @@ def check_resources(preset: TrainPreset, available: float) -> None:
         fail("num_env_runners", preset.num_env_runners,
              f"at most {int(available) - 1} on this Ray cluster ({available:g} CPUs; a run "
              f"needs 1 + num_env_runners = {need})")
+
+
+def checkpoint_config(preset: TrainPreset):
+    """Keep the 3 best checkpoints by evaluation coverage, and always the latest (resume).
+
+    Without evaluation there is no score: the 3 latest are kept.
+    """
+    from ray import tune
+
+    scored = preset.evaluation_interval > 0
+    return tune.CheckpointConfig(
+        checkpoint_frequency=preset.checkpoint_frequency, checkpoint_at_end=True,
+        num_to_keep=3, checkpoint_score_attribute=EVAL_SCORE if scored else None,
+        checkpoint_score_order="max")
 
 
 def _versions() -> dict[str, str]:
@@ -189,9 +205,7 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
             run_config=tune.RunConfig(
                 storage_path=str(run_dir), name=TUNE_DIR, verbose=0,
                 stop={ENV_STEPS: preset.total_env_steps},
-                checkpoint_config=tune.CheckpointConfig(
-                    checkpoint_frequency=preset.checkpoint_frequency, checkpoint_at_end=True,
-                    num_to_keep=3),
+                checkpoint_config=checkpoint_config(preset),
                 failure_config=tune.FailureConfig(max_failures=2),
                 callbacks=[progress]))
     console.print(f"[bold]{algo}[/] on {env_cfg.scenario} ({env_cfg.team.wheeled} wheeled + "
@@ -230,21 +244,23 @@ class ProgressCallback(Callback):
         if evaluated and evaluation:
             ecov = evaluation.get("scan/coverage", math.nan)
             line += f"  eval coverage {ecov:5.3f}"
-            self._append_eval(result, evaluation)
+            append_eval(self.run_dir, result, evaluation)
         print(line, flush=True)
 
-    def _append_eval(self, result: dict, evaluation: dict) -> None:
-        path = self.run_dir / EVAL_FILE
-        entries = json.loads(path.read_text()) if path.is_file() else []
-        it = result.get("training_iteration", 0)
-        # After a restore, iterations past the checkpoint run again: the new ones win.
-        entries = [e for e in entries if e["training_iteration"] < it]
-        entries.append({
-            "training_iteration": result.get("training_iteration"),
-            "env_steps": result.get(ENV_STEPS),
-            "time_total_s": result.get("time_total_s"),
-            "episode_return_mean": evaluation.get("episode_return_mean"),
-            "module_returns": evaluation.get("module_episode_returns_mean", {}),
-            **{k[len("scan/"):]: v for k, v in evaluation.items() if k.startswith("scan/")},
-        })
-        path.write_text(json.dumps(entries, indent=1, default=float))
+
+def append_eval(folder: Path, result: dict, evaluation: dict) -> None:
+    """Append one evaluation (RLlib's ``evaluation/env_runners`` dict) to eval_metrics.json."""
+    path = Path(folder) / EVAL_FILE
+    entries = json.loads(path.read_text()) if path.is_file() else []
+    it = result.get("training_iteration", 0)
+    # After a restore, iterations past the checkpoint run again: the new ones win.
+    entries = [e for e in entries if e["training_iteration"] < it]
+    entries.append({
+        "training_iteration": it,
+        "env_steps": result.get(ENV_STEPS),
+        "time_total_s": result.get("time_total_s"),
+        "episode_return_mean": evaluation.get("episode_return_mean"),
+        "module_returns": evaluation.get("module_episode_returns_mean", {}),
+        **{k[len("scan/"):]: v for k, v in evaluation.items() if k.startswith("scan/")},
+    })
+    path.write_text(json.dumps(entries, indent=1, default=float))
