@@ -3,25 +3,16 @@ Chromium (WebGL through SwiftShader) with the scene drawn."""
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from rl_scan.envs.core import ScanCore
 from rl_scan.envs.heuristics import GreedyTeam
 from rl_scan.reports.replay import record_episode, replay_figure, write_replay
 
 DATA = Path(__file__).parent / "data"
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
-         "--use-angle=swiftshader", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--window-size=1100,800", "--virtual-time-budget=8000"]
 
 
 def _recording(scenario="ablation", max_steps=40):
@@ -42,23 +33,13 @@ def test_recording_matches_the_episode():
     assert [int(f.name) for f in fig.frames] == sorted({*range(0, steps + 1, 3), steps})
 
 
-@pytest.mark.skipif(CHROMIUM is None and not os.environ.get("CI"),
-                    reason="headless Chromium not installed (CI installs it)")
-def test_replay_renders_in_headless_chromium(tmp_path):
-    from PIL import Image
-
-    assert CHROMIUM, "CI must have chromium (see .ci/run)"
+def test_replay_renders_in_headless_chromium(tmp_path, chromium):
     _, rec = _recording()
     html = write_replay(rec, tmp_path / "replay.html", every=10, title="test")
-    common = [CHROMIUM, *FLAGS, f"--user-data-dir={tmp_path / 'profile'}"]
-    dom = subprocess.run([*common, "--dump-dom", html.as_uri()], capture_output=True,
-                         text=True, timeout=120).stdout
+    dom = chromium.dom(html)
     page = re.sub(r"<script.*?</script>", "", dom, flags=re.S)  # plotly.js itself is inlined
     assert "js-plotly-plot" in page and "gl-container" in page  # plotly drew a 3D scene
     assert "<canvas" in page and "WebGL is not supported" not in page
-    shot = tmp_path / "shot.png"
-    subprocess.run([*common, f"--screenshot={shot}", html.as_uri()], capture_output=True,
-                   timeout=120, check=True)
-    pixels = np.asarray(Image.open(shot).convert("RGB")).reshape(-1, 3).astype(int)
+    pixels = chromium.screenshot(html, tmp_path / "shot.png")
     green = (pixels[:, 1] > 120) & (pixels[:, 0] < 90) & (pixels[:, 2] < 110)
     assert green.sum() > 200  # the unscanned cells are on screen

@@ -134,3 +134,17 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
     assert "| poca_s1 | poca on ablation | 60,000 | 96.0 | 92.5 ± 5.6 | 50.0 [15.0, 85.0] (4) |" \
         in md
     assert "poca_s0 |" not in md.split("Secondary")[1].split("| run | env steps")[0]
+
+
+def test_report_html_renders_in_headless_chromium(tmp_path, chromium):
+    """The self-contained HTML shows its tables and its (inlined) figure."""
+    _study(tmp_path, {"poca": [0.96, 0.90], "ppo": [0.50, 0.60]})
+    out = build_report(tmp_path, reference=False)
+    dom = chromium.dom(out / "report.html")
+    assert dom.count('src="data:image/png;base64,') == 1 and "<table>" in dom
+    assert "<td>poca</td>" in dom and "<td>converged</td>" in dom
+    pixels = chromium.screenshot(out / "report.html", tmp_path / "shot.png")
+    # matplotlib's first two colours: the poca (blue) and ppo (orange) curves are on screen
+    blue = (abs(pixels[:, 0] - 31) < 30) & (abs(pixels[:, 1] - 119) < 30) & (pixels[:, 2] > 150)
+    orange = (pixels[:, 0] > 220) & (abs(pixels[:, 1] - 127) < 30) & (pixels[:, 2] < 60)
+    assert blue.sum() > 100 and orange.sum() > 100
