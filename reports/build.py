@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from rl_scan.reports.collect import Collection, RunRecord, collect
+from rl_scan.reports.collect import Collection, RunRecord, collect, read_json
 from rl_scan.reports.stats import (
     iqm,
     mean_std,
@@ -259,6 +259,27 @@ def marl_eval_json(runs: list[RunRecord]) -> dict[str, Any]:
     return out
 
 
+def bench_lines(results_dir: Path) -> list[str]:
+    """Figures of any ``rl-scan bench env|train --json`` files in the results folder."""
+    lines = []
+    for path in sorted(results_dir.glob("**/bench*.json")):
+        data = read_json(path)
+        if not isinstance(data, dict):
+            continue
+        load = data.get("load_avg_1m", math.nan)
+        if "core_steps_per_s" in data:
+            lines += [f"| env only, `{path.name}` (load {load:.2f}) | core "
+                      f"{data['core_steps_per_s']:,.0f}, RLlib env "
+                      f"{data.get('rllib_steps_per_s', math.nan):,.0f}, PettingZoo "
+                      f"{data.get('pettingzoo_steps_per_s', math.nan):,.0f} env steps/s "
+                      "(one core, random actions) |"]
+        for label, run in (data.get("runs") or {}).items():
+            lines += [f"| training end to end, `{path.name}` (load {load:.2f}) | {label}: "
+                      f"{run.get('env_steps_per_s', math.nan):,.0f} env steps/s, peak RSS "
+                      f"{run.get('peak_rss_mb', math.nan):,.0f} MB |"]
+    return (["", "| benchmark | figures |", "|---|---|", *lines, ""] if lines else [])
+
+
 def hardware() -> dict[str, str]:
     cpu = "unknown"
     try:
@@ -329,8 +350,10 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
     hw = hardware()
     md += ["## Compute", "", "| item | value |", "|---|---|"]
     md += [f"| {k} | {v} |" for k, v in hw.items()]
-    md += ["", "Env-only speed: `rl-scan bench env`; end-to-end training speed: "
-           "`rl-scan bench train` (figures in the README and issue notes).", ""]
+    bench = bench_lines(results_dir)
+    md += bench or ["", "No benchmark JSON under the results folder: env-only speed comes from "
+                    "`rl-scan bench env --json F`, end-to-end training speed from "
+                    "`rl-scan bench train --json F` (put F in the results folder).", ""]
     (out / "report.md").write_text("\n".join(md))
     (out / "marl_eval.json").write_text(json.dumps(marl_eval_json(data.runs), default=float))
     (out / "report.html").write_text(to_html("\n".join(md), out))

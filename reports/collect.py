@@ -68,7 +68,7 @@ class Collection:
     studies: dict[str, dict[str, Any]] = field(default_factory=dict)  # group -> study.yaml
 
 
-def _json(path: Path) -> Any:
+def read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
@@ -94,12 +94,12 @@ def read_run(folder: Path, group: str, condition: str | None = None) -> RunRecor
     env = meta.get("env_config", {})
     return RunRecord(group=group, condition=condition or meta.get("algo", "?"),
                      seed=int(meta.get("seed", 0)), path=folder,
-                     evals=_json(folder / EVAL_FILE) or [],
+                     evals=read_json(folder / EVAL_FILE) or [],
                      eval_episodes=int(meta.get("preset_config", {}).get(
                          "evaluation_episodes", 0)),
                      env_steps=steps, time_total_s=seconds,
                      scenario=env.get("scenario", ""), algo=meta.get("algo", ""),
-                     best_eval=_json(folder / BEST_EVAL_FILE))
+                     best_eval=read_json(folder / BEST_EVAL_FILE))
 
 
 def read_study(folder: Path) -> tuple[list[RunRecord], dict[str, Any]]:
@@ -108,7 +108,7 @@ def read_study(folder: Path) -> tuple[list[RunRecord], dict[str, Any]]:
     group = folder.name
     records = []
     for trial in sorted(p for p in (folder / "tune").glob("*") if p.is_dir()):
-        cond = _json(trial / "condition.json")
+        cond = read_json(trial / "condition.json")
         if cond is None:
             continue
         params = cond.get("params", {})
@@ -116,12 +116,12 @@ def read_study(folder: Path) -> tuple[list[RunRecord], dict[str, Any]]:
                  ", ".join(f"{k}={_short(v)}" for k, v in sorted(params.items()) if k != "seed"))
         steps, seconds = _progress_tail(trial)
         records.append(RunRecord(group=group, condition=label, seed=int(params.get("seed", 0)),
-                                 path=trial, evals=_json(trial / EVAL_FILE) or [],
+                                 path=trial, evals=read_json(trial / EVAL_FILE) or [],
                                  eval_episodes=preset.evaluation_episodes, env_steps=steps,
                                  time_total_s=seconds,
                                  scenario=cond.get("env_config", {}).get("scenario", "ablation"),
                                  algo=cond.get("algo", ""),
-                                 best_eval=_json(trial / BEST_EVAL_FILE)))
+                                 best_eval=read_json(trial / BEST_EVAL_FILE)))
     return records, study
 
 

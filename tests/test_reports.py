@@ -121,6 +121,9 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
                "success": [0.0, 1.0, 1.0, 0.0]})
     _run(tmp_path, "ppo_s0", "ppo", 0, [0.3, 0.5, 0.6])  # never
     _run(tmp_path, "ppo_s1", "ppo", 1, [0.4, 0.6, 0.82])  # at 60k
+    (tmp_path / "bench_env.json").write_text(json.dumps(
+        {"load_avg_1m": 0.08, "core_steps_per_s": 25996.8, "rllib_steps_per_s": 18203.3,
+         "pettingzoo_steps_per_s": 18138.9}))
     rows = {r["condition"]: r for r in condition_rows(collect(tmp_path).runs)}
     assert rows["poca on ablation"]["speed"] == 30000 and rows["poca on ablation"][
         "speed_reached"] == 2
@@ -134,6 +137,7 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
     assert "| poca_s1 | poca on ablation | 60,000 | 96.0 | 92.5 ± 5.6 | 50.0 [15.0, 85.0] (4) |" \
         in md
     assert "poca_s0 |" not in md.split("Secondary")[1].split("| run | env steps")[0]
+    assert "core 25,997, RLlib env 18,203, PettingZoo 18,139 env steps/s" in md
 
 
 def test_report_html_renders_in_headless_chromium(tmp_path, chromium):
