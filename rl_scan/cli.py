@@ -1,11 +1,13 @@
-"""The ``rl-scan`` command line.
+"""The ``rl-scan`` command line: the argument parser; ``commands.py`` does the work.
 
-  rl-scan scenario show NAME        objects, cell counts and robot starts of a scenario
-  rl-scan scenario export NAME OUT  write a scenario as YAML (re-loadable) or a mesh file
-  rl-scan bench env                 simulator/adapter speed and scripted-team coverage
-  rl-scan render                    PNG/GIF of an episode of the scripted greedy team
+  rl-scan scenario show|export      a scenario's objects, cells and starts / YAML or mesh
+  rl-scan bench env|train|mpe       simulator speed, training speed, MPE external check
   rl-scan train                     train POCA or PPO through Ray Tune
-  rl-scan evaluate CHECKPOINT       metrics table of a trained team
+  rl-scan meta-train / adapt        MetaPOCA; adapt (fine-tune) a checkpoint to a scene
+  rl-scan experiment meta-mrss      the paper's protocol on held-out scenes
+  rl-scan ablate comm|algo|team|hpo Tune + Optuna studies
+  rl-scan evaluate / render / replay  metrics table, GIF/PNG, interactive 3D replay
+  rl-scan report RESULTS_DIR        Markdown + HTML report with figures and statistics
 
 Errors in the input (unknown keys, bad values, missing files) print one line naming the
 field and exit with status 2 before anything runs.
@@ -14,12 +16,11 @@ field and exit with status 2 before anything runs.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
-from rl_scan.config import ConfigError, to_dict
-from rl_scan.metrics import BEST_EVAL_FILE, EVAL_FILE
+from rl_scan import commands
+from rl_scan.config import ConfigError
+from rl_scan.metrics import BEST_EVAL_FILE
 
 EXAMPLES = """examples:
   rl-scan scenario show ablation
@@ -29,331 +30,6 @@ EXAMPLES = """examples:
   rl-scan render --scenario test:0 --out runs/test0.gif --every 5
   rl-scan train --algo ppo --preset smoke --scenario ablation
 """
-
-
-def _write_json(path: str, data) -> None:
-    """Write figures as JSON (NaN/numpy values as floats) and say where."""
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(data, indent=1, default=float))
-    print(f"wrote {path}")
-
-
-def _scenario_cmd(args: argparse.Namespace) -> int:
-    import numpy as np
-    from rich.console import Console
-    from rich.table import Table
-
-    from rl_scan.env_args import env_config_from_args
-    from rl_scan.envs.core import ScanCore
-
-    args.scenario = args.name
-    config = env_config_from_args(args)
-    core = ScanCore(config)
-    core.reset(seed=0)  # for 'random', this draw is the one shown/exported
-    world = core.world
-    scenario = world.scenario
-    if args.action == "export":
-        return _export(world, Path(args.out))
-    console = Console()
-    table = Table(title=f"scenario {scenario.name!r}: {world.n_objects} objects, "
-                        f"{world.n_cells} cells (arena {' x '.join(f'{a:g}' for a in config.arena)}"
-                        f" m, cell {config.cell_size} m)")
-    for col in ("#", "shape", "size m (x,y,z)", "position m (x,y)", "yaw", "voxels", "cells"):
-        table.add_column(col, justify="left" if col == "shape" else "right")
-    voxels = np.bincount(world.object_id[world.object_id >= 0], minlength=world.n_objects)
-    for i, o in enumerate(scenario.objects):
-        table.add_row(str(i), o.shape, ", ".join(f"{s:g}" for s in o.size),
-                      ", ".join(f"{p:g}" for p in o.position), f"{o.yaw:g}",
-                      str(voxels[i]), str(world.obj_total[i]))
-    console.print(table)
-    starts = Table(title="robot starts (seed 0; jitter "
-                         f"{config.start_jitter} m per reset)")
-    for col in ("agent", "x", "y", "z"):
-        starts.add_column(col, justify="right")
-    for aid, p in zip(world.agent_ids, world.pos):
-        starts.add_row(aid, *(f"{v:.2f}" for v in p))
-    console.print(starts)
-    return 0
-
-
-def _export(world, out: Path) -> int:
-    import yaml
-
-    suffix = out.suffix.lower()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if suffix in (".yaml", ".yml"):
-        data = {"name": world.scenario.name,
-                "objects": [_object_fields(o) for o in world.scenario.objects],
-                "starts": [list(s) for s in world.scenario.starts]}
-        out.write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
-    elif suffix in (".obj", ".stl", ".glb", ".ply"):
-        import trimesh
-
-        from rl_scan.envs.sim.objects import placed_parts
-
-        parts = [m for o in world.scenario.objects for m in placed_parts(o)]
-        trimesh.util.concatenate(parts).export(out)
-    else:
-        raise ConfigError(f"out={str(out)!r} is invalid: allowed a .yaml, .obj, .stl, .glb "
-                          "or .ply path")
-    print(f"wrote {out}")
-    return 0
-
-
-def _object_fields(spec) -> dict:
-    """The fields of an ObjectSpec that matter for its shape (for a readable YAML)."""
-    keep = {"shape", "size", "position", "z", "yaw"} | {
-        "lshape": {"proportions"}, "hull": {"points"}, "mesh": {"path"}}.get(spec.shape, set())
-    return {k: v for k, v in to_dict(spec).items() if k in keep}
-
-
-def _bench_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.bench import run_bench_env
-    from rl_scan.env_args import env_config_from_args
-
-    if args.seconds <= 0:
-        raise ConfigError(f"seconds={args.seconds} is invalid: allowed a value > 0")
-    if args.seeds < 1:
-        raise ConfigError(f"seeds={args.seeds} is invalid: allowed an integer >= 1")
-    config = env_config_from_args(args)
-    res = run_bench_env(config, seconds=args.seconds, seeds=args.seeds,
-                        pin_core=not args.no_pin)
-    if args.json:
-        _write_json(args.json, res)
-    return 0
-
-
-def _parse_algos(text: str, allowed) -> list[str]:
-    """'ppo,poca' -> ['ppo', 'poca'], each one of ``allowed``."""
-    algos = [a.strip() for a in text.split(",") if a.strip()]
-    if not algos or any(a not in allowed for a in algos):
-        raise ConfigError(f"algos={text!r} is invalid: allowed a comma-separated list of "
-                          f"{sorted(allowed)}")
-    return algos
-
-
-def _bench_train_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.bench_train import run_bench_train
-    from rl_scan.env_args import env_config_from_args, env_mapping_from_args
-    from rl_scan.tuning.launch import ALGORITHMS
-
-    algos = _parse_algos(args.algos, ALGORITHMS)
-    for name in ("iterations", "batch", "minibatch", "epochs", "envs_per_runner"):
-        if getattr(args, name) < 1:
-            raise ConfigError(f"{name}={getattr(args, name)} is invalid: allowed an integer >= 1")
-    env_config_from_args(args)
-    res = run_bench_train(env_mapping_from_args(args), algos, iterations=args.iterations,
-                          train_batch_size=args.batch, minibatch_size=args.minibatch,
-                          num_epochs=args.epochs, envs_per_runner=args.envs_per_runner)
-    if args.json:
-        _write_json(args.json, res)
-    return 0
-
-
-def _bench_mpe_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.bench_mpe import run_bench_mpe
-
-    algos = _parse_algos(args.algos, ("poca", "ppo"))
-    for name in ("seeds", "env_steps"):
-        if getattr(args, name) < 1:
-            raise ConfigError(f"{name}={getattr(args, name)} is invalid: allowed an integer >= 1")
-    res = run_bench_mpe(algos, args.seeds, args.env_steps)
-    if args.json:
-        _write_json(args.json, res)
-    return 0
-
-
-def _render_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.env_args import env_config_from_args
-    from rl_scan.envs.core import ScanCore
-    from rl_scan.envs.heuristics import GreedyTeam, RandomTeam, run_episode
-    from rl_scan.envs.render import save_frames
-
-    out = Path(args.out)
-    if out.suffix.lower() not in (".png", ".gif"):
-        raise ConfigError(f"out={str(out)!r} is invalid: allowed a .png or .gif path")
-    if args.every < 1:
-        raise ConfigError(f"every={args.every} is invalid: allowed an integer >= 1")
-    if args.checkpoint:
-        core, team, label = _checkpoint_team(args)
-    else:
-        core = ScanCore(env_config_from_args(args))
-        team = GreedyTeam(core) if args.policy == "greedy" else RandomTeam(core, seed=args.seed)
-        label = f"{args.policy} team"
-    frames: list = []
-    metrics = run_episode(core, team, seed=args.seed, frames=frames, frame_every=args.every)
-    save_frames(frames, out, fps=args.fps)
-    print(f"wrote {out} ({len(frames) if out.suffix.lower() == '.gif' else 1} frames): "
-          f"{label}, coverage {100 * metrics['coverage']:.1f}% in "
-          f"{metrics['episode_steps']:.0f} steps, {metrics['collisions']:.0f} collisions")
-    return 0
-
-
-def _replay_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.env_args import env_config_from_args
-    from rl_scan.envs.core import ScanCore
-    from rl_scan.envs.heuristics import GreedyTeam
-    from rl_scan.reports.replay import record_episode, write_replay
-
-    out = Path(args.out)
-    if out.suffix.lower() != ".html":
-        raise ConfigError(f"out={str(out)!r} is invalid: allowed an .html path")
-    if args.every < 1:
-        raise ConfigError(f"every={args.every} is invalid: allowed an integer >= 1")
-    if args.run:
-        core, team, label = _checkpoint_team(args)
-    else:
-        core = ScanCore(env_config_from_args(args))
-        team, label = GreedyTeam(core), "greedy team"
-    rec = record_episode(core, team, seed=args.seed)
-    write_replay(rec, out, every=args.every, title=f"{label} on {core.config.scenario}:")
-    print(f"wrote {out}: {label}, coverage {100 * rec.metrics['coverage']:.1f}% in "
-          f"{len(rec.paths) - 1} steps")
-    return 0
-
-
-def _checkpoint_team(args: argparse.Namespace):
-    """ScanCore on the run's env config (flags override it) and the checkpoint's team."""
-    from rl_scan.algorithms.rollout import (
-        PolicyTeam,
-        load_actors,
-        resolve_checkpoint,
-        run_env_config,
-    )
-    from rl_scan.config import deep_merge
-    from rl_scan.env_args import env_mapping_from_args
-    from rl_scan.envs.core import ScanCore
-    from rl_scan.envs.sim.env_config import make_env_config
-
-    target = getattr(args, "checkpoint", None) or args.run
-    if getattr(args, "best", False):
-        from rl_scan.algorithms.rollout import best_checkpoint
-
-        ckpt, args.best_info = best_checkpoint(target)
-    else:
-        ckpt = resolve_checkpoint(target)
-    config = make_env_config(deep_merge(run_env_config(ckpt), env_mapping_from_args(args)))
-    core = ScanCore(config)
-    import torch
-
-    torch.manual_seed(getattr(args, "seed", 0))  # sampled actions are reproducible
-    team = PolicyTeam(load_actors(ckpt), explore=not getattr(args, "deterministic", False))
-    return core, team, f"checkpoint {ckpt}"
-
-
-def _evaluate_cmd(args: argparse.Namespace) -> int:
-    import numpy as np
-    from rich.console import Console
-    from rich.table import Table
-
-    from rl_scan import metrics as M
-    from rl_scan.envs.heuristics import GreedyTeam, run_episode
-
-    if args.episodes < 1:
-        raise ConfigError(f"episodes={args.episodes} is invalid: allowed an integer >= 1")
-    core, team, label = _checkpoint_team(args)
-    runs = [run_episode(core, team, seed=args.seed + i) for i in range(args.episodes)]
-    greedy = [run_episode(core, GreedyTeam(core), seed=args.seed + i)
-              for i in range(args.episodes)] if not args.no_reference else []
-    table = Table(title=f"{label}\non {core.scenario_name}, {args.episodes} episodes "
-                        f"({'mean' if args.deterministic else 'sampled'} actions)")
-    for col in ("metric", "mean", "std", "min", "max", "greedy team mean"):
-        table.add_column(col, justify="left" if col == "metric" else "right")
-    summary = {}
-    for key in M.EPISODE_METRICS:
-        vals = np.array([r[key] for r in runs], dtype=float)
-        ok = vals[~np.isnan(vals)]
-        summary[key] = {"mean": float(ok.mean()) if len(ok) else None,
-                        "std": float(ok.std()) if len(ok) else None, "n": int(len(ok))}
-        ref_vals = np.array([g[key] for g in greedy], dtype=float)
-        ref_vals = ref_vals[~np.isnan(ref_vals)]
-        ref = ref_vals.mean() if len(ref_vals) else float("nan")
-        cells = [f"{f(ok):.3f}" if len(ok) else "-" for f in (np.mean, np.std, np.min, np.max)]
-        table.add_row(key + ("" if len(ok) == len(vals) else f" ({len(ok)}/{len(vals)} reached)"),
-                      *cells, "-" if np.isnan(ref) else f"{ref:.3f}")
-    Console().print(table)
-    if args.json:
-        _write_json(args.json, {"checkpoint": label, "episodes": runs, "summary": summary})
-    if args.best:
-        _record_best_eval(core, label, args, runs)
-    return 0
-
-
-def _record_best_eval(core, label: str, args: argparse.Namespace, runs: list[dict]) -> None:
-    """Write best_checkpoint_eval.json beside the run's eval_metrics.json (for the report)."""
-    ckpt = Path(label.removeprefix("checkpoint "))
-    folder = next((p for p in ckpt.parents if (p / EVAL_FILE).is_file()), None)
-    if folder is None:
-        print(f"note: no {EVAL_FILE} above {ckpt}; nothing recorded for the report")
-        return
-    out = folder / BEST_EVAL_FILE
-    _write_json(str(out), {**args.best_info, "checkpoint": str(ckpt),
-                           "scenario": core.scenario_name, "episodes": len(runs),
-                           "seed": args.seed, "deterministic": args.deterministic,
-                           "coverage": [r["coverage"] for r in runs],
-                           "success": [r["success"] for r in runs]})
-    print(f"best checkpoint (iteration {args.best_info['training_iteration']}, training-time "
-          f"eval {args.best_info['eval_coverage']:.3f}) recorded in {out}")
-
-
-def _train_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.env_args import env_config_from_args, env_mapping_from_args
-    from rl_scan.tuning.launch import train
-
-    overrides = {k: v for k, v in (("num_env_runners", args.num_env_runners),
-                                   ("num_envs_per_env_runner", args.envs_per_runner),
-                                   ("total_env_steps", args.total_env_steps)) if v is not None}
-    env_config_from_args(args)  # validate before anything starts
-    run_dir = train(args.algo, env_mapping_from_args(args), args.preset, seed=args.seed,
-                    results_dir=args.results, name=args.name, address=args.address,
-                    resume=args.resume, preset_overrides=overrides,
-                    init_from=getattr(args, "init_from", None))
-    print(f"done: {run_dir}")
-    return 0
-
-
-def _adapt_cmd(args: argparse.Namespace) -> int:
-    args.algo, args.init_from = "poca", args.checkpoint
-    if args.budget is not None:
-        if args.budget < 1:
-            raise ConfigError(f"budget={args.budget} is invalid: allowed >= 1 env steps")
-        args.total_env_steps = args.budget
-    return _train_cmd(args)
-
-
-def _experiment_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.tuning.meta_mrss import parse_tests, run_protocol
-
-    overrides = {k: v for k, v in (("pretrain_steps", args.pretrain_steps),
-                                   ("adapt_steps", args.adapt_steps)) if v is not None}
-    run_protocol(args.results, args.name, preset=args.preset,
-                 methods=[m.strip() for m in args.methods.split(",") if m.strip()],
-                 tests=parse_tests(args.tests), seeds=args.seeds,
-                 protocol_overrides=overrides)
-    return 0
-
-
-def _ablate_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.env_args import env_config_from_args, env_mapping_from_args
-    from rl_scan.tuning.ablate import ablate
-
-    env_config_from_args(args)
-    overrides = {k: v for k, v in (("num_env_runners", args.num_env_runners),
-                                   ("total_env_steps", args.total_env_steps)) if v is not None}
-    folder = ablate(args.study, args.preset, seeds=args.seeds, trials=args.trials,
-                    results_dir=args.results, name=args.name, address=args.address,
-                    resume=args.resume, env_config=env_mapping_from_args(args),
-                    preset_overrides=overrides)
-    print(f"done: {folder}  (optuna-dashboard sqlite:///{folder / 'optuna.db'})")
-    return 0
-
-
-def _report_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.reports.build import build_report
-
-    out = build_report(args.results_dir, args.out, reference=not args.no_reference)
-    print(f"wrote {out / 'report.md'}, {out / 'report.html'}, {out / 'marl_eval.json'}")
-    return 0
 
 
 def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
@@ -391,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("out", help="output path; the suffix chooses the format")
     add_env_args(export, scenario=None)
     for p in (show, export):
-        p.set_defaults(func=_scenario_cmd)
+        p.set_defaults(func=commands.scenario_cmd)
 
     bench = sub.add_parser("bench", formatter_class=fmt, help="benchmarks",
                            description="Benchmarks printing figures and ratios from one run.")
@@ -408,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     benv.add_argument("--no-pin", action="store_true", help="do not pin to one CPU core")
     benv.add_argument("--json", default=None, help="also write the figures to this JSON file")
     add_env_args(benv)
-    benv.set_defaults(func=_bench_cmd)
+    benv.set_defaults(func=commands.bench_cmd)
     btrain = bench_sub.add_parser(
         "train", formatter_class=fmt, help="end-to-end training throughput",
         description="Env steps/s of train() (sampling + learning) for each algorithm on the "
@@ -423,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     btrain.add_argument("--envs-per-runner", type=int, default=4)
     btrain.add_argument("--json", default=None, help="also write the figures to this JSON file")
     add_env_args(btrain)
-    btrain.set_defaults(func=_bench_train_cmd)
+    btrain.set_defaults(func=commands.bench_train_cmd)
     bmpe = bench_sub.add_parser(
         "mpe", formatter_class=fmt, help="POCA vs PPO on PettingZoo MPE simple_spread_v3",
         description="External check: train each algorithm on simple_spread_v3 (mpe2, 3 "
@@ -433,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     bmpe.add_argument("--seeds", type=int, default=3)
     bmpe.add_argument("--env-steps", type=int, default=100_000, help="budget per run")
     bmpe.add_argument("--json", default=None, help="also write curves and figures here")
-    bmpe.set_defaults(func=_bench_mpe_cmd)
+    bmpe.set_defaults(func=commands.bench_mpe_cmd)
 
     tr = sub.add_parser(
         "train", formatter_class=fmt, help="train POCA or PPO through Ray Tune",
@@ -449,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                     help="start from this checkpoint's (or run folder's) weights")
     add_env_args(tr)
-    tr.set_defaults(func=_train_cmd)
+    tr.set_defaults(func=commands.train_cmd)
 
     mt = sub.add_parser(
         "meta-train", formatter_class=fmt, help="meta-train MetaPOCA (meta-MRSS) through Tune",
@@ -461,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_args(mt, "meta-poca_SCENARIO_PRESET_sSEED")
     mt.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
     add_env_args(mt)
-    mt.set_defaults(func=_train_cmd, algo="meta-poca")
+    mt.set_defaults(func=commands.train_cmd, algo="meta-poca")
 
     ad = sub.add_parser(
         "adapt", formatter_class=fmt, help="adapt a trained team to a scenario (POCA)",
@@ -473,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="adaptation env steps (default: the preset's budget)")
     _add_run_args(ad, "poca_SCENARIO_PRESET_sSEED")
     add_env_args(ad)
-    ad.set_defaults(func=_adapt_cmd, total_env_steps=None)
+    ad.set_defaults(func=commands.adapt_cmd, total_env_steps=None)
 
     ab = sub.add_parser(
         "ablate", formatter_class=fmt, help="ablation studies (Tune + Optuna)",
@@ -490,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     ab.add_argument("--trials", type=int, default=8, help="trials of the hpo study")
     ab.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
     add_env_args(ab)
-    ab.set_defaults(func=_ablate_cmd)
+    ab.set_defaults(func=commands.ablate_cmd)
 
     rl = sub.add_parser(
         "replay", formatter_class=fmt, help="interactive 3D HTML replay of an episode",
@@ -504,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     rl.add_argument("--every", type=int, default=5, help="one frame every N env steps")
     rl.add_argument("--seed", type=int, default=0, help="reset seed")
     add_env_args(rl)
-    rl.set_defaults(func=_replay_cmd)
+    rl.set_defaults(func=commands.replay_cmd)
 
     rp = sub.add_parser(
         "report", formatter_class=fmt, help="Markdown + HTML report of a results folder",
@@ -516,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", default=None, help="output folder (default RESULTS_DIR/report)")
     rp.add_argument("--no-reference", action="store_true",
                     help="skip the scripted greedy team's reference line")
-    rp.set_defaults(func=_report_cmd)
+    rp.set_defaults(func=commands.report_cmd)
 
     ex = sub.add_parser("experiment", formatter_class=fmt, help="multi-run protocols",
                         description="Protocols made of many runs.")
@@ -537,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     mm.add_argument("--adapt-steps", type=int, default=None, help="override the preset")
     mm.add_argument("--results", default="results")
     mm.add_argument("--name", default="meta-mrss")
-    mm.set_defaults(func=_experiment_cmd)
+    mm.set_defaults(func=commands.experiment_cmd)
 
     ev = sub.add_parser(
         "evaluate", formatter_class=fmt, help="metrics of a trained team",
@@ -558,7 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--no-reference", action="store_true", help="skip the greedy team")
     ev.add_argument("--json", default=None, help="also write per-episode metrics here")
     add_env_args(ev)
-    ev.set_defaults(func=_evaluate_cmd)
+    ev.set_defaults(func=commands.evaluate_cmd)
 
     render = sub.add_parser("render", formatter_class=fmt, help="PNG/GIF of an episode",
                             description="Play one episode with a checkpoint's team (if given) "
@@ -573,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--fps", type=int, default=10, help="GIF frames per second")
     render.add_argument("--seed", type=int, default=0, help="reset seed")
     add_env_args(render)
-    render.set_defaults(func=_render_cmd)
+    render.set_defaults(func=commands.render_cmd)
     return parser
 
 
