@@ -202,7 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Pre-train meta-MRSS, domain randomisation and transfer learning, then "
                     "adapt each (and standard POCA from scratch) on every held-out test "
                     "scenario with the same budget, for each seed; print method x (final "
-                    "coverage, env steps to 80 %%, success) with the paper's figures. "
+                    "coverage, env steps to 80 %, success) with the paper's figures. "
                     "Re-running resumes: finished runs are skipped.")
     mm.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick")
     mm.add_argument("--seeds", type=int, default=3)
@@ -219,7 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
         "evaluate", formatter_class=fmt, help="metrics of a trained team",
         description="Play episodes with a checkpoint's policies (sampled actions) on its run's "
                     "env config, or on the scenario/team given here, and print coverage, "
-                    "success, steps to 50/80/95 %%, collisions and returns per kind, beside "
+                    "success, steps to 50/80/95 %, collisions and returns per kind, beside "
                     "the scripted greedy team.")
     ev.add_argument("checkpoint", help="a checkpoint, trial or run folder (newest checkpoint)")
     ev.add_argument("--best", action="store_true",

@@ -87,3 +87,21 @@ def test_help(capsys, argv):
         main([*argv, "--help"])
     assert e.value.code == 0
     assert "usage: rl-scan" in capsys.readouterr().out
+
+
+def test_every_help_page_renders_its_percent_signs():
+    """Descriptions are not %-formatted by argparse (help strings are): no stray '%%'."""
+    import argparse
+
+    from rl_scan.cli import build_parser
+
+    def pages(parser):
+        yield parser.format_help()
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    yield from pages(sub)
+
+    texts = list(pages(build_parser()))
+    assert len(texts) > 15
+    assert not [t.splitlines()[0] for t in texts if "%%" in t]
