@@ -322,7 +322,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         planned = data.planned.get(group)
         missing = [r for r in runs if not r.evals]
         if planned and len(runs) < planned:
-            md.append(f"**Partial:** {len(runs)} of {planned} planned trials have started.")
+            md.append(f"**Partial:** {len(runs)} of {planned} planned runs have started.")
         if missing:
             md.append(f"**Missing evaluations:** {len(missing)} run(s) have none yet: "
                       + ", ".join(f"`{r.path.name}`" for r in missing[:10]))

@@ -68,6 +68,13 @@ class Collection:
     studies: dict[str, dict[str, Any]] = field(default_factory=dict)  # group -> study.yaml
 
 
+def read_yaml(path: Path) -> Any:
+    try:
+        return yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+
+
 def read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
@@ -143,6 +150,10 @@ def collect(root: str | Path) -> Collection:
         if folder.parent.name in ("pretrain", "adapt"):  # a meta-MRSS experiment
             group = f"{folder.parent.parent.name}/{folder.parent.name}"
             record = read_run(folder, group, folder.name.split("_")[0])  # the method
+            plan = read_yaml(folder.parent.parent / "protocol.yaml") or {}
+            planned = (plan.get("planned_runs") or {}).get(folder.parent.name)
+            if planned:
+                out.planned[group] = int(planned)
         else:
             record = read_run(folder, "runs", None)
             record.condition = f"{record.algo} on {record.scenario}"

@@ -83,7 +83,7 @@ def test_report_on_a_synthetic_study(tmp_path):
     out = build_report(tmp_path, reference=False)
     md = (out / "report.md").read_text()
     assert (out / "figures" / "ablate-algo-quick.png").stat().st_size > 10_000
-    assert "Partial:** 8 of 10" in md  # the study planned 10 trials
+    assert "Partial:** 8 of 10 planned runs" in md  # the study planned 10 trials
     # P(poca > ppo): poca wins 13 of the 16 pairs (.97 beats all four poca runs but .98)
     assert "| poca > ppo | 0.81" in md
     html = (out / "report.html").read_text()
@@ -152,3 +152,16 @@ def test_report_html_renders_in_headless_chromium(tmp_path, chromium):
     blue = (abs(pixels[:, 0] - 31) < 30) & (abs(pixels[:, 1] - 119) < 30) & (pixels[:, 2] > 150)
     orange = (pixels[:, 0] > 220) & (abs(pixels[:, 1] - 127) < 30) & (pixels[:, 2] < 60)
     assert blue.sum() > 100 and orange.sum() > 100
+
+
+def test_a_partial_meta_mrss_experiment_says_what_is_missing(tmp_path):
+    exp = tmp_path / "mm"
+    (exp / "adapt").mkdir(parents=True)
+    (exp / "protocol.yaml").write_text(yaml.safe_dump(
+        {"methods": ["meta-mrss", "poca"], "tests": ["test:0", "test:1"], "seeds": 1,
+         "planned_runs": {"pretrain": 1, "adapt": 4}}))
+    _run(exp / "adapt", "poca_test0_s0", "poca", 0, [0.3, 0.5])
+    data = collect(tmp_path)
+    assert data.planned == {"mm/adapt": 4} and data.runs[0].condition == "poca"
+    md = (build_report(tmp_path, reference=False) / "report.md").read_text()
+    assert "Partial:** 1 of 4 planned runs" in md

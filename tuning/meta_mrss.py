@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from rl_scan import metrics as M
 from rl_scan.config import ConfigError, check_range, fail
@@ -40,6 +41,7 @@ PAPER_SUCCESS = {"meta-mrss": 87.12, "dr": 68.54, "poca": 60.16, "transfer": 71.
 PRETRAIN = {"meta-mrss": ("meta-poca", "train:*"), "dr": ("poca", "train:*"),
             "transfer": ("poca", "train:0")}
 DONE = "DONE"
+PROTOCOL_FILE = "protocol.yaml"  # what the experiment planned (methods, tests, seeds, budgets)
 TARGET = 0.8
 
 
@@ -117,7 +119,14 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     validate(methods, tests, seeds, protocol)
     env_config = dict(env_config or {})
     root = Path(results_dir).resolve() / name
-    total = sum(1 for m in methods if m in PRETRAIN) * seeds + len(methods) * len(tests) * seeds
+    pretrain_runs = sum(1 for m in methods if m in PRETRAIN) * seeds
+    adapt_runs = len(methods) * len(tests) * seeds
+    total = pretrain_runs + adapt_runs
+    root.mkdir(parents=True, exist_ok=True)
+    (root / PROTOCOL_FILE).write_text(yaml.safe_dump({  # lets a report say what is missing
+        "preset": preset, "methods": methods, "tests": tests, "seeds": seeds,
+        "protocol": dict(protocol.__dict__),
+        "planned_runs": {"pretrain": pretrain_runs, "adapt": adapt_runs}}, sort_keys=False))
     done = 0
     for seed in range(seeds):
         for method in methods:
