@@ -146,22 +146,11 @@ def bench_mpe_cmd(args: argparse.Namespace) -> int:
 
 
 def render_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.env_args import env_config_from_args
-    from rl_scan.envs.core import ScanCore
-    from rl_scan.envs.heuristics import GreedyTeam, RandomTeam, run_episode
+    from rl_scan.envs.heuristics import run_episode
     from rl_scan.envs.render import save_frames
 
-    out = Path(args.out)
-    if out.suffix.lower() not in (".png", ".gif"):
-        raise ConfigError(f"out={str(out)!r} is invalid: allowed a .png or .gif path")
-    if args.every < 1:
-        raise ConfigError(f"every={args.every} is invalid: allowed an integer >= 1")
-    if args.checkpoint:
-        core, team, label = _checkpoint_team(args)
-    else:
-        core = ScanCore(env_config_from_args(args))
-        team = GreedyTeam(core) if args.policy == "greedy" else RandomTeam(core, seed=args.seed)
-        label = f"{args.policy} team"
+    out = _episode_output(args, (".png", ".gif"))
+    core, team, label = _episode_team(args, args.checkpoint, args.policy)
     frames: list = []
     metrics = run_episode(core, team, seed=args.seed, frames=frames, frame_every=args.every)
     save_frames(frames, out, fps=args.fps)
@@ -172,26 +161,39 @@ def render_cmd(args: argparse.Namespace) -> int:
 
 
 def replay_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.env_args import env_config_from_args
-    from rl_scan.envs.core import ScanCore
-    from rl_scan.envs.heuristics import GreedyTeam
     from rl_scan.reports.replay import record_episode, write_replay
 
-    out = Path(args.out)
-    if out.suffix.lower() != ".html":
-        raise ConfigError(f"out={str(out)!r} is invalid: allowed an .html path")
-    if args.every < 1:
-        raise ConfigError(f"every={args.every} is invalid: allowed an integer >= 1")
-    if args.run:
-        core, team, label = _checkpoint_team(args)
-    else:
-        core = ScanCore(env_config_from_args(args))
-        team, label = GreedyTeam(core), "greedy team"
+    out = _episode_output(args, (".html",))
+    core, team, label = _episode_team(args, args.run, "greedy")
     rec = record_episode(core, team, seed=args.seed)
     write_replay(rec, out, every=args.every, title=f"{label} on {core.config.scenario}:")
     print(f"wrote {out}: {label}, coverage {100 * rec.metrics['coverage']:.1f}% in "
           f"{len(rec.paths) - 1} steps")
     return 0
+
+
+def _episode_output(args: argparse.Namespace, suffixes: tuple[str, ...]) -> Path:
+    """``--out`` and ``--every`` of render/replay, checked before anything runs."""
+    out = Path(args.out)
+    if out.suffix.lower() not in suffixes:
+        raise ConfigError(f"out={str(out)!r} is invalid: allowed a path ending in "
+                          f"{' or '.join(suffixes)}")
+    if args.every < 1:
+        raise ConfigError(f"every={args.every} is invalid: allowed an integer >= 1")
+    return out
+
+
+def _episode_team(args: argparse.Namespace, checkpoint: str | None, policy: str):
+    """(ScanCore, team, label): a checkpoint's team, else a scripted greedy/random team."""
+    if checkpoint:
+        return _checkpoint_team(args)
+    from rl_scan.env_args import env_config_from_args
+    from rl_scan.envs.core import ScanCore
+    from rl_scan.envs.heuristics import GreedyTeam, RandomTeam
+
+    core = ScanCore(env_config_from_args(args))
+    team = GreedyTeam(core) if policy == "greedy" else RandomTeam(core, seed=args.seed)
+    return core, team, f"{policy} team"
 
 
 def _checkpoint_team(args: argparse.Namespace):

@@ -73,6 +73,7 @@ def test_bench_env_smoke_writes_figures(capsys, tmp_path):
     (["scenario", "show", "ablation", "--comm", "9"], "comm_scheme=9"),
     (["scenario", "show", "missing.yaml"], "'missing.yaml' does not exist"),
     (["render", "--out", "x.jpg"], "out='x.jpg'"),
+    (["replay", "--out", "x.png"], "allowed a path ending in .html"),
     (["bench", "env", "--seconds", "0"], "seconds=0.0"),
 ])
 def test_bad_input_is_one_clear_line(capsys, argv, needle):
