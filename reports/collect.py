@@ -19,7 +19,7 @@ from typing import Any
 
 import yaml
 
-from rl_scan.metrics import BEST_EVAL_FILE, EVAL_FILE
+from rl_scan.metrics import BEST_EVAL_FILE, EVAL_FILE, PROTOCOL_FILE
 from rl_scan.tuning.presets import get_preset
 
 
@@ -150,7 +150,7 @@ def collect(root: str | Path) -> Collection:
         if folder.parent.name in ("pretrain", "adapt"):  # a meta-MRSS experiment
             group = f"{folder.parent.parent.name}/{folder.parent.name}"
             record = read_run(folder, group, folder.name.split("_")[0])  # the method
-            plan = read_yaml(folder.parent.parent / "protocol.yaml") or {}
+            plan = read_yaml(folder.parent.parent / PROTOCOL_FILE) or {}
             planned = (plan.get("planned_runs") or {}).get(folder.parent.name)
             if planned:
                 out.planned[group] = int(planned)

@@ -214,6 +214,7 @@ def _checkpoint_team(args: argparse.Namespace):
         from rl_scan.algorithms.rollout import best_checkpoint
 
         ckpt, args.best_info = best_checkpoint(target)
+        args.best_info["checkpoint"] = str(ckpt)
     else:
         ckpt = resolve_checkpoint(target)
     config = make_env_config(deep_merge(run_env_config(ckpt), env_mapping_from_args(args)))
@@ -259,20 +260,19 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
     if args.json:
         _write_json(args.json, {"checkpoint": label, "episodes": runs, "summary": summary})
     if args.best:
-        _record_best_eval(core, label, args, runs)
+        _record_best_eval(core, args, runs)
     return 0
 
 
-def _record_best_eval(core, label: str, args: argparse.Namespace, runs: list[dict]) -> None:
+def _record_best_eval(core, args: argparse.Namespace, runs: list[dict]) -> None:
     """Write best_checkpoint_eval.json beside the run's eval_metrics.json (for the report)."""
-    ckpt = Path(label.removeprefix("checkpoint "))
+    ckpt = Path(args.best_info["checkpoint"])
     folder = next((p for p in ckpt.parents if (p / EVAL_FILE).is_file()), None)
     if folder is None:
         print(f"note: no {EVAL_FILE} above {ckpt}; nothing recorded for the report")
         return
     out = folder / BEST_EVAL_FILE
-    _write_json(str(out), {**args.best_info, "checkpoint": str(ckpt),
-                           "scenario": core.scenario_name, "episodes": len(runs),
+    _write_json(str(out), {**args.best_info, "scenario": core.scenario_name, "episodes": len(runs),
                            "seed": args.seed, "deterministic": args.deterministic,
                            "coverage": [r["coverage"] for r in runs],
                            "success": [r["success"] for r in runs]})

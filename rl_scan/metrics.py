@@ -18,3 +18,4 @@ EPISODE_METRICS = (COVERAGE, SUCCESS, *STEPS_TO.values(), COLLISIONS,
 # Files in a run folder that reports read (written by training and `rl-scan evaluate --best`).
 EVAL_FILE = "eval_metrics.json"  # every training-time evaluation
 BEST_EVAL_FILE = "best_checkpoint_eval.json"  # the best kept checkpoint, re-evaluated
+PROTOCOL_FILE = "protocol.yaml"  # a meta-MRSS experiment's plan (methods, tests, seeds, runs)

@@ -33,6 +33,7 @@ import yaml
 from rl_scan import metrics as M
 from rl_scan.config import ConfigError, check_range, fail
 from rl_scan.envs.sim.scenarios import N_TEST
+from rl_scan.metrics import PROTOCOL_FILE
 from rl_scan.tuning.launch import EVAL_FILE, RUN_FILE, scenario_label, train
 
 METHODS = ("meta-mrss", "dr", "transfer", "poca")
@@ -41,7 +42,6 @@ PAPER_SUCCESS = {"meta-mrss": 87.12, "dr": 68.54, "poca": 60.16, "transfer": 71.
 PRETRAIN = {"meta-mrss": ("meta-poca", "train:*"), "dr": ("poca", "train:*"),
             "transfer": ("poca", "train:0")}
 DONE = "DONE"
-PROTOCOL_FILE = "protocol.yaml"  # what the experiment planned (methods, tests, seeds, budgets)
 TARGET = 0.8
 
 
