@@ -19,7 +19,7 @@ import argparse
 import sys
 
 from rl_scan import commands
-from rl_scan.config import ConfigError
+from rl_scan.config import ConfigError, RunInterrupted
 from rl_scan.metrics import BEST_EVAL_FILE
 
 EXAMPLES = """examples:
@@ -203,7 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "adapt each (and standard POCA from scratch) on every held-out test "
                     "scenario with the same budget, for each seed; print method x (final "
                     "coverage, env steps to 80 %, success) with the paper's figures. "
-                    "Re-running resumes: finished runs are skipped.")
+                    "Independent runs go in parallel (--jobs; the default fills the Ray "
+                    "cluster's CPUs). Re-running resumes: finished runs are skipped, "
+                    "interrupted ones continue from their last checkpoint.")
     mm.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick")
     mm.add_argument("--seeds", type=int, default=3)
     mm.add_argument("--tests", default="0,1,2,3,4", help="test scenario indices (0-4)")
@@ -211,6 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="comma-separated subset of meta-mrss,dr,transfer,poca")
     mm.add_argument("--pretrain-steps", type=int, default=None, help="override the preset")
     mm.add_argument("--adapt-steps", type=int, default=None, help="override the preset")
+    mm.add_argument("--jobs", type=int, default=None,
+                    help="runs at once (default: as many as the Ray cluster's CPUs hold)")
+    mm.add_argument("--address", default=None, help="Ray cluster address (default: local)")
     mm.add_argument("--results", default="results")
     mm.add_argument("--name", default="meta-mrss")
     mm.set_defaults(func=commands.experiment_cmd)
@@ -262,6 +267,12 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError) as e:
         print(f"rl-scan {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except (RunInterrupted, KeyboardInterrupt) as e:
+        again = ("run the same command again to continue" if args.command == "experiment"
+                 else "the same command with --resume continues it")
+        print(f"rl-scan {args.command}: interrupted{f': {e}' if str(e) else ''}; {again}",
+              file=sys.stderr)
+        return 130
     finally:
         if not ray_was_up and _ray_is_up():
             # A command that started Ray stops it, so in-process callers (notebooks, tests)

@@ -313,7 +313,7 @@ def experiment_cmd(args: argparse.Namespace) -> int:
     run_protocol(args.results, args.name, preset=args.preset,
                  methods=[m.strip() for m in args.methods.split(",") if m.strip()],
                  tests=parse_tests(args.tests), seeds=args.seeds,
-                 protocol_overrides=overrides)
+                 protocol_overrides=overrides, jobs=args.jobs, address=args.address)
     return 0
 
 

@@ -24,6 +24,10 @@ class ConfigError(ValueError):
     """A config value is invalid. The message names the field, the value and what is allowed."""
 
 
+class RunInterrupted(RuntimeError):
+    """A training run stopped before its budget (Ctrl+C); its last checkpoint can be resumed."""
+
+
 def fail(field: str, value: Any, allowed: str) -> typing.NoReturn:
     """Raise a ConfigError in the one format used everywhere."""
     raise ConfigError(f"{field}={value!r} is invalid: allowed {allowed}")

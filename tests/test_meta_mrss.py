@@ -12,9 +12,13 @@ from rl_scan.cli import main
 from rl_scan.config import ConfigError
 from rl_scan.tuning.meta_mrss import (
     PROTOCOLS,
+    Job,
+    check_jobs,
     curve_metrics,
     format_table,
     parse_tests,
+    plan_jobs,
+    run_jobs,
     run_protocol,
     summarize,
 )
@@ -33,12 +37,85 @@ def test_tests_must_be_held_out_scenarios():
     (["--adapt-steps", "0"], "adapt_steps=0"),
     (["--seeds", "0"], "seeds=0"),
     (["--tests", "train:1"], "train set"),
+    (["--jobs", "0"], "jobs=0"),
+    (["--jobs", "64"], "jobs=64"),  # more than a 2-CPU machine holds
 ])
 def test_bad_protocol_input_fails_before_training(tmp_path, capsys, argv, message):
     code = main(["experiment", "meta-mrss", "--preset", "smoke", "--results", str(tmp_path),
                  *argv])
     assert code == 2 and message in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_every_paper_run_is_checked_up_front_and_meta_poca_samples_locally(tmp_path):
+    plan = plan_jobs(tmp_path, ["meta-mrss", "dr", "transfer", "poca"], ["test:0", "test:4"],
+                     seeds=2, protocol=PROTOCOLS["paper"], env_config={})
+    assert len(plan) == 2 * (3 + 4 * 2)
+    meta = next(j for j in plan if j.name == "meta-mrss_s0")
+    assert meta.kwargs["preset_overrides"]["num_env_runners"] == 0
+    check_jobs(plan)  # the paper preset's 2 env runners would be refused by MetaPOCA
+    adapt = [j for j in plan if j.name == "dr_test4_s1"][0]
+    assert adapt.after.name == "dr_s1"
+    assert adapt.kwargs["init_from"] == tmp_path / "pretrain" / "dr_s1"
+    assert all(j.after is None for j in plan if j.name.startswith("poca_"))
+    with pytest.raises(ConfigError, match="comm_scheme"):
+        check_jobs(plan_jobs(tmp_path, ["poca"], ["test:0"], 1, PROTOCOLS["smoke"],
+                             {"comm_scheme": 9}))
+
+
+class FakeJob(Job):
+    """A job that records when it ran instead of training."""
+
+    def __init__(self, name, log, after=None, action=None):
+        super().__init__(name, None, name, {}, after)
+        self.log, self.action = log, action
+
+    def run(self, child=False, address=None):
+        self.log.append(("start", self.name))
+        if self.action:
+            self.action()
+        self.log.append(("end", self.name))
+
+
+def test_jobs_run_in_parallel_and_wait_for_their_prerequisite():
+    import threading
+
+    from rich.console import Console
+
+    log, both = [], threading.Barrier(2, timeout=30)
+    pre = FakeJob("pre", log, action=both.wait)  # pre and free must overlap, or time out
+    jobs = [pre, FakeJob("adapt", log, after=pre), FakeJob("free", log, action=both.wait)]
+    run_jobs(jobs, workers=2, console=Console(quiet=True))
+    assert log.index(("end", "pre")) < log.index(("start", "adapt"))
+    assert sorted(log) == sorted([(e, n) for n in ("pre", "adapt", "free")
+                                  for e in ("start", "end")])
+
+
+def test_after_a_failure_no_new_job_starts_and_the_error_is_raised():
+    import threading
+    import time
+
+    from rich.console import Console
+
+    failing = threading.Event()
+
+    def boom():
+        failing.set()
+        raise RuntimeError("env crashed")
+
+    def after_boom():  # still running when the failure is seen
+        failing.wait(30)
+        time.sleep(0.3)
+
+    log = []
+    pre = FakeJob("pre", log, action=boom)
+    jobs = [pre, FakeJob("adapt", log, after=pre), FakeJob("other", log, action=after_boom),
+            FakeJob("later", log)]
+    with pytest.raises(RuntimeError, match="env crashed"):
+        run_jobs(jobs, workers=2, console=Console(quiet=True))
+    started = {n for e, n in log if e == "start"}
+    assert started == {"pre", "other"}
+    assert ("end", "other") in log  # the running job was let finish
 
 
 def test_curve_metrics_by_hand():
@@ -131,3 +208,41 @@ def test_init_from_loads_every_shared_module_into_learner_and_runner(ray_session
             assert all(torch.equal(sd[k], runner[k]) for k in runner), m
     fresh.stop()
     started.stop()
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_parallel_runs_unfinished_and_a_rerun_completes_them(tmp_path):
+    """Ctrl+C reaches both child runs; neither is marked done; the same command resumes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    cmd = [sys.executable, "-m", "rl_scan.cli", "experiment", "meta-mrss", "--preset", "smoke",
+           "--methods", "poca", "--tests", "0,1", "--seeds", "1", "--adapt-steps", "6000",
+           "--jobs", "2", "--results", str(tmp_path), "--name", "mm"]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    adapt = tmp_path / "mm" / "adapt"
+    runs = [adapt / "poca_test0_s0", adapt / "poca_test1_s0"]
+    deadline = time.time() + 180
+    while time.time() < deadline and not all(
+            list((r / "tune" / "trial").glob("checkpoint_*")) for r in runs):
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGINT)  # the parent only: it passes Ctrl+C on to its runs
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted" in err, err[-2000:]
+    assert not any((r / "DONE").exists() for r in runs)
+    stopped_at = [json.loads((r / "eval_metrics.json").read_text())[-1]["env_steps"]
+                  for r in runs]
+    assert all(s < 6000 for s in stopped_at)
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    for run in runs:
+        assert (run / "DONE").is_file()
+        iters = [e["training_iteration"] for e in json.loads((run / "eval_metrics.json")
+                                                               .read_text())]
+        assert iters == list(range(1, 16))  # resumed, not restarted: each iteration once
+        # runs started side by side keep apart (a shared Ray session mixed their trials)
+        assert [p.name for p in (run / "tune").glob("trial*")] == ["trial"]

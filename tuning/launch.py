@@ -27,7 +27,7 @@ os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # Tune's boxed tables; we prin
 from ray.tune import Callback  # noqa: E402
 
 from rl_scan.algorithms.callbacks import EVAL_SCORE
-from rl_scan.config import ConfigError, deep_merge, fail, to_dict
+from rl_scan.config import ConfigError, RunInterrupted, deep_merge, fail, to_dict
 from rl_scan.envs.sim.env_config import make_env_config
 from rl_scan.metrics import EVAL_FILE
 from rl_scan.tuning.presets import TrainPreset, get_preset
@@ -216,6 +216,10 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
     errors = [r.error for r in grid if r.error]
     if errors:
         raise RuntimeError(f"training failed: {errors[0]}")
+    steps = max((int(r.metrics.get(ENV_STEPS, 0)) for r in grid), default=0)
+    if steps < preset.total_env_steps:  # Tune ends a run quietly on Ctrl+C
+        raise RunInterrupted(f"{name} stopped at {steps:,} of {preset.total_env_steps:,} "
+                             "env steps; its last checkpoint is kept")
     return run_dir
 
 
@@ -230,7 +234,8 @@ class ProgressCallback(Callback):
         runners = result.get("env_runners", {})
         steps = int(result.get(ENV_STEPS, 0))
         cov = runners.get("scan/coverage", math.nan)
-        line = (f"iter {result.get('training_iteration', 0):>4}  env steps {steps:>10,} "
+        line = (f"{self.run_dir.name}  iter {result.get('training_iteration', 0):>4}  "
+                f"env steps {steps:>10,} "
                 f"({100 * steps / self.total:5.1f}%)  "
                 f"return {runners.get('episode_return_mean', math.nan):8.1f}  "
                 f"coverage {cov:5.3f}  {result.get('time_this_iter_s', 0):5.1f} s/iter")

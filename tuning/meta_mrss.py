@@ -23,6 +23,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,10 +38,20 @@ import numpy as np
 import yaml
 
 from rl_scan import metrics as M
-from rl_scan.config import ConfigError, check_range, fail
+from rl_scan.config import ConfigError, RunInterrupted, check_range, fail
 from rl_scan.envs.sim.scenarios import N_TEST
 from rl_scan.metrics import PROTOCOL_FILE
-from rl_scan.tuning.launch import EVAL_FILE, RUN_FILE, scenario_label, train
+from rl_scan.tuning.launch import (
+    EVAL_FILE,
+    RUN_FILE,
+    _init_ray,
+    build_algorithm_config,
+    check_resources,
+    required_cpus,
+    scenario_label,
+    train,
+)
+from rl_scan.tuning.presets import get_preset
 
 METHODS = ("meta-mrss", "dr", "transfer", "poca")
 PAPER_SUCCESS = {"meta-mrss": 87.12, "dr": 68.54, "poca": 60.16, "transfer": 71.74}
@@ -103,11 +120,175 @@ def _run(folder: Path, name: str, **kwargs) -> Path:
     return run_dir
 
 
+@dataclass(eq=False)
+class Job:
+    """One training run of the protocol; it may start once ``after`` has finished."""
+
+    label: str
+    folder: Path
+    name: str
+    kwargs: dict[str, Any]
+    after: Job | None = None
+
+    def run(self, child: bool = False, address: str | None = None) -> Path:
+        """Train in this process, or in a child process: on the Ray cluster at
+        ``address``, or else on a local Ray of its own (see ``run_jobs``)."""
+        if not child:
+            return _run(self.folder, self.name, address=address, **self.kwargs)
+        spec = {"folder": str(self.folder), "name": self.name, "address": address,
+                **self.kwargs, "init_from": _str_or_none(self.kwargs.get("init_from"))}
+        log = self.folder.parent / LOG_DIR / f"{self.folder.name}_{self.name}.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with open(log, "ab") as err:  # stdout (progress lines) goes to the terminal
+            proc = subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(spec)],
+                                    stderr=err, start_new_session=True)
+            with _CHILDREN_LOCK:
+                _CHILDREN.add(proc)
+            try:
+                code = proc.wait()
+            finally:
+                with _CHILDREN_LOCK:
+                    _CHILDREN.discard(proc)
+        if code != 0:
+            tail = log.read_text(errors="replace").strip().splitlines()[-5:]
+            raise RuntimeError(f"{self.name} exited with code {code}; from {log}:\n"
+                               + "\n".join(tail))
+        return self.folder / self.name
+
+
+LOG_DIR = "logs"  # stderr of every run started in a child process
+LAUNCH_GAP_S = 2.0  # between child runs on a shared cluster (see run_jobs)
+_CHILD = ("import sys; from rl_scan.tuning.meta_mrss import child_main; "
+          "sys.exit(child_main(sys.argv[1]))")
+_CHILDREN: set[subprocess.Popen] = set()
+_CHILDREN_LOCK = threading.Lock()
+
+
+def _str_or_none(value: Any) -> str | None:
+    return None if value is None else str(value)
+
+
+def child_main(spec_json: str) -> int:
+    """Entry point of a run in a child process (``Job.run`` with an address)."""
+    spec = json.loads(spec_json)
+    try:
+        _run(Path(spec.pop("folder")), spec.pop("name"), **spec)
+    except RunInterrupted as e:
+        print(f"interrupted: {e}", file=sys.stderr)  # the parent says how to resume
+        return 130
+    return 0
+
+
+def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
+              protocol: Protocol, env_config: dict[str, Any]) -> list[Job]:
+    """Every run of the protocol, seed by seed (the order runs start in): each method's
+    pre-training, then its adaptation to every test scene (which waits for it)."""
+    jobs = []
+    for seed in range(seeds):
+        for method in methods:
+            pre = None
+            if method in PRETRAIN:
+                algo, scenario = PRETRAIN[method]
+                overrides = {"total_env_steps": protocol.pretrain_steps}
+                if algo == "meta-poca":  # samples its tasks on the local env runner
+                    overrides["num_env_runners"] = 0
+                pre = Job(f"pre-train {method} (seed {seed}, {protocol.pretrain_steps:,} "
+                          "env steps)", root / "pretrain", f"{method}_s{seed}",
+                          dict(algo=algo, env_config={**env_config, "scenario": scenario},
+                               preset_name=protocol.train_preset, seed=seed,
+                               preset_overrides=overrides))
+                jobs.append(pre)
+            for test in tests:
+                jobs.append(Job(
+                    f"adapt {method} on {test} (seed {seed}, {protocol.adapt_steps:,} env "
+                    "steps)", root / "adapt", f"{method}_{scenario_label(test)}_s{seed}",
+                    dict(algo="poca", env_config={**env_config, "scenario": test},
+                         preset_name=protocol.train_preset, seed=seed,
+                         init_from=pre.folder / pre.name if pre else None,
+                         preset_overrides={"total_env_steps": protocol.adapt_steps,
+                                           "evaluation_interval": protocol.eval_interval}),
+                    after=pre))
+    return jobs
+
+
+def check_jobs(jobs: list[Job]) -> None:
+    """Build every run's algorithm config (without Ray) so bad settings fail up front."""
+    seen = set()
+    for job in jobs:
+        kw = job.kwargs
+        key = (kw["algo"], kw["env_config"]["scenario"])
+        if key not in seen:
+            seen.add(key)
+            preset = get_preset(kw["preset_name"], kw["preset_overrides"])
+            build_algorithm_config(kw["algo"], kw["env_config"], preset, kw["seed"])
+
+
+def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None) -> None:
+    """Run ``jobs`` in list order, ``workers`` at a time, each as soon as its
+    prerequisite has finished. After a failure no new job starts; the running ones
+    finish and the first error is raised.
+
+    One worker runs the jobs in this process. More run each job in a child process,
+    because two Tune runs must not share a driver process (Tune's trainable registry is
+    not thread-safe) nor, locally, a Ray session (runs starting in the same second with
+    the same experiment name share one staging folder, which Tune then syncs into both
+    run folders). A child joins the cluster at ``address`` if given (launches are
+    spaced ``LAUNCH_GAP_S`` apart for this reason), else starts a local Ray of its own.
+    Ctrl+C is passed on to the children, which stop at once (Tune keeps their state):
+    running the protocol again resumes them.
+    """
+    def start(job: Job, count: int) -> None:
+        console.print(f"[bold]meta-mrss[/] run {count}/{len(jobs)}: {job.label}")
+
+    if workers == 1:  # in this thread, so Tune's own Ctrl+C handling applies
+        for count, job in enumerate(jobs, 1):
+            start(job, count)
+            job.run(address=address)
+        return
+    waiting, running, finished = list(jobs), {}, set()
+    failure: BaseException | None = None
+    last_launch = -math.inf
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="protocol") as pool:
+        try:
+            while running or (waiting and failure is None):
+                ready = [j for j in waiting if j.after is None or j.after in finished]
+                for job in ready[:workers - len(running)] if failure is None else []:
+                    waiting.remove(job)
+                    start(job, len(jobs) - len(waiting))
+                    if address is not None:
+                        time.sleep(max(0.0, last_launch + LAUNCH_GAP_S - time.monotonic()))
+                        last_launch = time.monotonic()
+                    running[pool.submit(job.run, True, address)] = job
+                if not running:  # nothing can start: a prerequisite failed
+                    break
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for future in done:
+                    job, error = running.pop(future), future.exception()
+                    if error is None:
+                        finished.add(job)
+                    else:
+                        failure = failure or error
+                        console.print(f"[red]meta-mrss: {job.name} failed[/]: {error}")
+        except KeyboardInterrupt:
+            console.print("[red]interrupted[/]: stopping the running runs; run the same "
+                          "command again to resume them")
+            with _CHILDREN_LOCK:
+                for proc in _CHILDREN:
+                    proc.send_signal(signal.SIGINT)
+            raise
+    if failure is not None:
+        raise failure
+
+
 def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
                  methods: tuple[str, ...] | list[str] = METHODS, tests: list[str] | None = None,
                  seeds: int = 3, env_config: dict[str, Any] | None = None,
-                 protocol_overrides: dict[str, int] | None = None, console=None) -> dict:
-    """Pre-train and adapt every method on every test scene and seed; returns the summary."""
+                 protocol_overrides: dict[str, int] | None = None, jobs: int | None = None,
+                 address: str | None = None, console=None) -> dict:
+    """Pre-train and adapt every method on every test scene and seed; returns the summary.
+
+    ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold).
+    """
     from rich.console import Console
 
     console = console or Console()
@@ -117,39 +298,28 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     tests = tests or [f"test:{i}" for i in range(N_TEST)]
     methods = list(methods)
     validate(methods, tests, seeds, protocol)
+    if jobs is not None:
+        check_range("jobs", jobs, 1)
     env_config = dict(env_config or {})
     root = Path(results_dir).resolve() / name
-    pretrain_runs = sum(1 for m in methods if m in PRETRAIN) * seeds
-    adapt_runs = len(methods) * len(tests) * seeds
-    total = pretrain_runs + adapt_runs
+    plan = plan_jobs(root, methods, tests, seeds, protocol, env_config)
+    check_jobs(plan)
+    need = required_cpus(get_preset(protocol.train_preset))
+    cpus = _available_cpus(address)
+    check_resources(get_preset(protocol.train_preset), cpus)
+    most = max(1, int(cpus) // need)
+    if jobs is not None and jobs > most:
+        fail("jobs", jobs, f"at most {most} on this Ray cluster ({cpus:g} CPUs, {need} per run)")
+    workers = min(jobs or most, len(plan))
     root.mkdir(parents=True, exist_ok=True)
     (root / PROTOCOL_FILE).write_text(yaml.safe_dump({  # lets a report say what is missing
         "preset": preset, "methods": methods, "tests": tests, "seeds": seeds,
         "protocol": dict(protocol.__dict__),
-        "planned_runs": {"pretrain": pretrain_runs, "adapt": adapt_runs}}, sort_keys=False))
-    done = 0
-    for seed in range(seeds):
-        for method in methods:
-            init = None
-            if method in PRETRAIN:
-                algo, scenario = PRETRAIN[method]
-                done += 1
-                console.print(f"[bold]meta-mrss[/] run {done}/{total}: pre-train {method} "
-                              f"(seed {seed}, {protocol.pretrain_steps:,} env steps)")
-                init = _run(root / "pretrain", f"{method}_s{seed}", algo=algo,
-                            env_config={**env_config, "scenario": scenario},
-                            preset_name=protocol.train_preset, seed=seed, console=console,
-                            preset_overrides={"total_env_steps": protocol.pretrain_steps})
-            for test in tests:
-                done += 1
-                console.print(f"[bold]meta-mrss[/] run {done}/{total}: adapt {method} on "
-                              f"{test} (seed {seed}, {protocol.adapt_steps:,} env steps)")
-                _run(root / "adapt", f"{method}_{scenario_label(test)}_s{seed}", algo="poca",
-                     env_config={**env_config, "scenario": test},
-                     preset_name=protocol.train_preset, seed=seed, init_from=init,
-                     console=console,
-                     preset_overrides={"total_env_steps": protocol.adapt_steps,
-                                       "evaluation_interval": protocol.eval_interval})
+        "planned_runs": {kind: sum(j.folder.name == kind for j in plan)
+                         for kind in ("pretrain", "adapt")}},
+        sort_keys=False))
+    console.print(f"[bold]meta-mrss[/]: {len(plan)} runs, {workers} at a time -> {root}")
+    run_jobs(plan, workers, console, address=address)
     summary = summarize(root, methods, tests, seeds)
     (root / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
     (root / "table.md").write_text(format_table(summary))
@@ -199,6 +369,16 @@ def summarize(root: Path, methods: list[str], tests: list[str], seeds: int) -> d
             for k, v in per_seed.items()}
         out["methods"][method]["runs"] = runs
     return out
+
+
+def _available_cpus(address: str | None) -> float:
+    """CPUs of the cluster at ``address`` (or of the Ray this process runs), else of this
+    machine (local child runs start Ray themselves)."""
+    import ray
+
+    if address or ray.is_initialized():
+        return _init_ray(address)
+    return float(os.cpu_count() or 1)
 
 
 def _nanstat(func, values: list[float]) -> float:
