@@ -19,9 +19,9 @@ from rl_scan.config import ConfigError
 LR = 1e-3
 
 
-def _setup(order: int, inner_steps: int = 1):
+def _setup(order: int, inner_steps: int = 1, meta_epochs: int = 1):
     config = meta_poca_config({"max_steps": 12}, tasks=2, episodes=1, inner_steps=inner_steps,
-                              inner_lr=LR, order=order, task_pool=5,
+                              inner_lr=LR, order=order, meta_epochs=meta_epochs, task_pool=5,
                               num_envs_per_env_runner=1, seed=0)
     runner = MultiAgentEnvRunner(config=config)
     learner = config.build_learner(env=None, spaces=runner.get_spaces())
@@ -156,10 +156,69 @@ def test_first_order_meta_gradient_is_the_query_gradient_at_the_adapted_paramete
                                    rtol=1e-4, atol=1e-6)
 
 
+def _query_gradient_reference(learner, support, query, adapted):
+    """POCA's query-loss gradient at ``adapted``, keyed by (module, parameter name)."""
+    from rl_scan.algorithms.maml.learners import QUERY, poca_functional_forward, poca_losses
+
+    params = {mid: {n: p.clone().requires_grad_() for n, p in ps.items()}
+              for mid, ps in adapted.items()}
+    batch = learner._learner_connector(rl_module=learner.module, batch={},
+                                       episodes=copy.deepcopy(query), shared_data={})
+    batch = {m: b for m, b in batch.items() if m in learner.module.keys()}
+    steps = learner.module[CRITIC_ID].minibatches[QUERY].steps
+    losses, _ = poca_losses(learner.module, learner.config,
+                            poca_functional_forward(learner.module, params, batch, QUERY,
+                                                    steps), batch, QUERY, steps)
+    sum(losses.values()).backward()
+    return {(m, n): p.grad for m, ps in params.items() for n, p in ps.items()}
+
+
+def test_later_meta_epochs_re_adapt_from_the_updated_meta_parameters():
+    """Epoch 2's meta gradient is the query gradient at adapt(theta_1, support), where
+    theta_1 are the meta parameters after epoch 1's step (not the first adaptation)."""
+    _, runner, learner = _setup(order=1, meta_epochs=2)
+    support = _episodes(runner, "train:2")
+    adapted = learner.adapt(support)
+    for mid, sd in learner.adapted_state(adapted).items():
+        runner.module[mid].load_state_dict(sd)
+    query = runner.sample(num_episodes=1)
+    calls, original = [], learner.apply_gradients
+
+    def spy(gradients):  # the parameters before each step, and the step's gradient
+        calls.append((_params(learner), {p: g.clone() for p, g in gradients.items()}))
+        original(gradients)
+
+    learner.apply_gradients = spy
+    learner.meta_update([{"support": support, "query": query, "adapted": adapted}])
+    assert len(calls) == 2
+    theta_1, applied = calls[1]
+    theta_0 = calls[0][0]
+    assert any(not torch.equal(theta_1[m][n], theta_0[m][n])  # the first step moved them
+               for m in theta_0 for n in theta_0[m])
+    with torch.no_grad():  # rebuild theta_1 and adapt from it as the learner should have
+        for mid in learner.module.keys():
+            for n, p in learner.module[mid].named_parameters():
+                p.copy_(theta_1[mid][n])
+    reference = _query_gradient_reference(learner, support, query, learner.adapt(support))
+    stale = _query_gradient_reference(learner, support, query, adapted)
+    real = {p: (mid, n) for mid in learner.module.keys()
+            for n, p in learner.module[mid].named_parameters()}
+    differs = 0
+    for p, g in applied.items():
+        key = real[p]
+        ref = reference[key] if reference[key] is not None else torch.zeros_like(g)
+        torch.testing.assert_close(g, ref, rtol=1e-4, atol=1e-6)
+        if stale[key] is not None and not torch.allclose(stale[key], ref):
+            differs += 1
+    assert differs > 0  # re-adapting matters: the stale adaptation gives other gradients
+
+
 def test_bad_meta_settings_fail_before_building():
     with pytest.raises(ConfigError, match="meta.order"):
         meta_poca_config({}, tasks=2, episodes=1, order=3).validate()
     with pytest.raises(ConfigError, match="meta.tasks"):
         meta_poca_config({}, tasks=0, episodes=1).validate()
+    with pytest.raises(ConfigError, match="meta.epochs"):
+        meta_poca_config({}, tasks=1, episodes=1, meta_epochs=0).validate()
     with pytest.raises(ConfigError, match="num_env_runners"):
         meta_poca_config({}, tasks=1, episodes=1, num_env_runners=1).validate()

@@ -60,7 +60,7 @@ def build_algorithm_config(algo: str, env_config: dict[str, Any], preset: TrainP
     if algo == "meta-poca":
         kwargs.update(tasks=preset.meta_tasks, episodes=preset.meta_episodes,
                       inner_steps=preset.inner_steps, inner_lr=preset.inner_lr,
-                      order=preset.meta_order)
+                      order=preset.meta_order, meta_epochs=preset.meta_epochs)
     kwargs.update(algo_kwargs or {})
     config = builder(deep_merge(preset.env_overrides, env_config), **kwargs)
     if init_from is not None:

@@ -45,6 +45,8 @@ class TrainPreset:
     """meta-poca: inner learning rate (Adam for first order, SGD for second order)."""
     meta_order: int = 1
     """meta-poca: 1 = first order with inner Adam (paper), 2 = second order with SGD."""
+    meta_epochs: int = 3
+    """meta-poca: meta (outer) steps per meta-iteration on its query episodes (paper: 3)."""
 
     def validate(self, prefix: str = "") -> None:
         check_range(prefix + "total_env_steps", self.total_env_steps, 1)
@@ -62,6 +64,7 @@ class TrainPreset:
         check_range(prefix + "inner_steps", self.inner_steps, 1)
         check_range(prefix + "inner_lr", self.inner_lr, 0.0, 1.0, lo_open=True)
         check_range(prefix + "meta_order", self.meta_order, 1, 2)
+        check_range(prefix + "meta_epochs", self.meta_epochs, 1, 100)
 
     @property
     def iterations(self) -> int:

@@ -8,8 +8,8 @@ through ``torch.func.functional_call``, and ``inner_steps`` full-batch inner ste
   * second order (``meta_order=2``): SGD keeping the graph (``create_graph=True``), so
     the meta-gradient flows back through every inner step.
 ``MetaPOCALearner`` (a ``TorchMetaLearner``) adapts per task, takes POCA's loss on each
-task's query episodes under the adapted parameters, and makes one meta update (Adam)
-with the task-averaged gradient.
+task's query episodes under the adapted parameters, and makes ``meta_epochs`` meta updates
+(Adam) with the task-averaged gradient, re-adapting from the updated weights each time.
 
 RLlib 2.60 bugs worked around (tests cover both):
   1. ``DifferentiableLearnerConfig`` with ``is_multi_agent=True`` reads
@@ -204,44 +204,61 @@ class MetaPOCALearner(FusedAdamMixin, TorchMetaLearner):
                 for mid, ps in params.items() if mid != CRITIC_ID}
 
     def meta_update(self, tasks: list[dict[str, Any]]) -> dict[str, Any]:
-        """One meta step. ``tasks``: dicts with ``support`` and ``query`` episodes and, for
-        first order, the ``adapted`` parameters the query episodes were sampled with."""
+        """``config.meta_epochs`` meta steps on one batch of tasks. ``tasks``: dicts with
+        ``support`` and ``query`` episodes and, for first order, the ``adapted``
+        parameters the query episodes were sampled with.
+
+        Each step adapts every task from the current meta parameters (the first
+        first-order step reuses ``adapted``), takes POCA's clipped loss on its query
+        episodes under the adapted parameters and makes one meta-Adam step with the
+        task-averaged gradient. Several steps per batch of episodes is PPO's reuse of
+        its samples (the paper's 3 epochs; RLlib's MAML: ``maml_optimizer_steps``);
+        the clipped ratio against the sampling policy keeps the later steps honest.
+        """
         if not tasks:
             raise ValueError("meta_update needs at least one task")
         real = {mid: dict(self.module[mid].named_parameters()) for mid in self.module.keys()}
-        total = {p: torch.zeros_like(p) for ps in real.values() for p in ps.values()}
-        query_losses = []
-        for task in tasks:
-            if self.inner.first_order:
-                adapted = {mid: {n: p.detach().clone().requires_grad_() for n, p in ps.items()}
-                           for mid, ps in task["adapted"].items()}
-                wrt = adapted  # FOMAML: gradient at the adapted parameters
-            else:
-                adapted, _, _ = self.inner.update(
-                    params=self._clone_named_parameters(),
-                    training_data=TrainingData(episodes=copy.deepcopy(task["support"])),
-                    _no_metrics_reduce=True)
-                wrt = real  # through the inner steps to the meta parameters
-            batch = self._learner_connector(rl_module=self.module, batch={},
-                                            episodes=copy.deepcopy(task["query"]),
-                                            shared_data={}, metrics=self.metrics)
-            batch = {mid: b for mid, b in batch.items() if mid in self.module.keys()}
-            steps = self.module[CRITIC_ID].minibatches[QUERY].steps
-            fwd = poca_functional_forward(self.module, adapted, batch, QUERY, steps)
-            losses, stats = poca_losses(self.module, self.config, fwd, batch, QUERY, steps)
-            loss = sum(losses.values())
-            flat = [(mid, n) for mid, ps in wrt.items() for n in ps]
-            grads = torch.autograd.grad(loss, [wrt[mid][n] for mid, n in flat],
-                                        allow_unused=True)
-            for (mid, n), g in zip(flat, grads):
-                if g is not None:
-                    total[real[mid][n]] += g.detach() / len(tasks)
-            query_losses.append(float(loss.detach()))
-            for mid, s in stats.items():
-                self.metrics.log_dict(s, key=mid, window=len(tasks))
-        gradients = {self.get_param_ref(p): g for p, g in total.items()}
-        self.apply_gradients(self.postprocess_gradients(gradients))
+        for epoch in range(int(self.config.meta_epochs)):
+            total = {p: torch.zeros_like(p) for ps in real.values() for p in ps.values()}
+            query_losses = []
+            for task in tasks:
+                loss, grads, stats = self._query_gradient(task, real, reuse=epoch == 0)
+                for p, g in grads.items():
+                    total[p] += g / len(tasks)
+                query_losses.append(loss)
+                for mid, st in stats.items():
+                    self.metrics.log_dict(st, key=mid, window=len(tasks))
+            gradients = {self.get_param_ref(p): g for p, g in total.items()}
+            self.apply_gradients(self.postprocess_gradients(gradients))
         self.metrics.log_value("meta/query_loss", sum(query_losses) / len(tasks), window=1)
         self.metrics.log_value("meta/grad_norm", math.sqrt(sum(
             float((g * g).sum()) for g in total.values())), window=1)
         return self.metrics.reduce()
+
+    def _query_gradient(self, task: dict[str, Any], real: NamedParams, reuse: bool):
+        """(query loss, gradient per real parameter, stats) of one task at the current
+        meta parameters ``real``; ``reuse``: first order may take ``task['adapted']``."""
+        if self.inner.first_order:
+            source = task["adapted"] if reuse else self.adapt(task["support"])
+            adapted = {mid: {n: p.detach().clone().requires_grad_() for n, p in ps.items()}
+                       for mid, ps in source.items()}
+            wrt = adapted  # FOMAML: gradient at the adapted parameters
+        else:
+            adapted, _, _ = self.inner.update(
+                params=self._clone_named_parameters(),
+                training_data=TrainingData(episodes=copy.deepcopy(task["support"])),
+                _no_metrics_reduce=True)
+            wrt = real  # through the inner steps to the meta parameters
+        batch = self._learner_connector(rl_module=self.module, batch={},
+                                        episodes=copy.deepcopy(task["query"]),
+                                        shared_data={}, metrics=self.metrics)
+        batch = {mid: b for mid, b in batch.items() if mid in self.module.keys()}
+        steps = self.module[CRITIC_ID].minibatches[QUERY].steps
+        fwd = poca_functional_forward(self.module, adapted, batch, QUERY, steps)
+        losses, stats = poca_losses(self.module, self.config, fwd, batch, QUERY, steps)
+        loss = sum(losses.values())
+        flat = [(mid, n) for mid, ps in wrt.items() for n in ps]
+        grads = torch.autograd.grad(loss, [wrt[mid][n] for mid, n in flat],
+                                    allow_unused=True)
+        out = {real[mid][n]: g.detach() for (mid, n), g in zip(flat, grads) if g is not None}
+        return float(loss.detach()), out, stats

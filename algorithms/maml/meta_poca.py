@@ -3,7 +3,7 @@
 Per meta-iteration: sample ``meta_tasks`` scenarios from the train set; per task, sample
 ``meta_episodes`` support episodes with the meta policy, adapt (``inner_steps`` inner
 steps, first order with Adam by default), sample as many query episodes with the adapted
-policy; then one meta update over the task batch (``learners.py``).
+policy; then ``meta_epochs`` meta updates over the task batch (``learners.py``).
 
     config = meta_poca_config({"max_steps": 200}, tasks=4, episodes=2)
     algo = config.build_algo(); algo.train(); algo.save_to_path("ckpt")
@@ -50,18 +50,22 @@ class MetaPOCAConfig(POCAConfig, DifferentiableAlgorithmConfig):
         self.inner_steps = 1
         self.inner_lr = 3e-4
         self.meta_order = 1
+        self.meta_epochs = 3
         self.task_pool = N_TRAIN
 
     def meta(self, *, tasks: int = NotProvided, episodes: int = NotProvided,
              inner_steps: int = NotProvided, inner_lr: float = NotProvided,
-             order: int = NotProvided, task_pool: int = NotProvided) -> MetaPOCAConfig:
+             order: int = NotProvided, epochs: int = NotProvided,
+             task_pool: int = NotProvided) -> MetaPOCAConfig:
         """Meta settings: ``tasks`` per meta-iteration (tau), support/query ``episodes`` per
         task (K), ``inner_steps`` and ``inner_lr`` of the adaptation, ``order`` 1 (first
-        order, inner Adam) or 2 (second order, inner SGD), and ``task_pool``: tasks are
-        drawn from ``train:0`` .. ``train:{task_pool - 1}``."""
+        order, inner Adam) or 2 (second order, inner SGD), ``epochs``: meta steps per
+        meta-iteration on its query episodes (the paper's 3), and ``task_pool``: tasks
+        are drawn from ``train:0`` .. ``train:{task_pool - 1}``."""
         for name, value in (("meta_tasks", tasks), ("meta_episodes", episodes),
                             ("inner_steps", inner_steps), ("inner_lr", inner_lr),
-                            ("meta_order", order), ("task_pool", task_pool)):
+                            ("meta_order", order), ("meta_epochs", epochs),
+                            ("task_pool", task_pool)):
             if value is not NotProvided:
                 setattr(self, name, value)
         self.sync_inner_learner_config()
@@ -77,6 +81,7 @@ class MetaPOCAConfig(POCAConfig, DifferentiableAlgorithmConfig):
         check_range("meta.episodes", self.meta_episodes, 1)
         check_range("meta.inner_steps", self.inner_steps, 1)
         check_range("meta.inner_lr", self.inner_lr, 0.0, lo_open=True)
+        check_range("meta.epochs", self.meta_epochs, 1, 100)
         check_range("meta.task_pool", self.task_pool, 1, N_TRAIN)
         if self.meta_order not in (1, 2):
             raise ConfigError(f"meta.order={self.meta_order!r}: allowed 1 (first order, "
@@ -169,7 +174,7 @@ class MetaPOCA(POCA):
 
 def meta_poca_config(env_config: dict[str, Any], *, tasks: int = 10, episodes: int = 20,
                      inner_steps: int = 1, inner_lr: float = 3e-4, order: int = 1,
-                     task_pool: int = N_TRAIN, train_batch_size: int = 1,
+                     meta_epochs: int = 3, task_pool: int = N_TRAIN, train_batch_size: int = 1,
                      minibatch_size: int = 1, **poca_kwargs: Any) -> MetaPOCAConfig:
     """MetaPOCAConfig for the scanning env: POCA's settings plus the meta ones. It samples
     whole episodes per task, so POCA's batch sizes (accepted for a common launch
@@ -177,4 +182,5 @@ def meta_poca_config(env_config: dict[str, Any], *, tasks: int = 10, episodes: i
     config = poca_config(env_config, base=MetaPOCAConfig(), train_batch_size=1,
                          minibatch_size=1, **poca_kwargs)
     return config.meta(tasks=tasks, episodes=episodes, inner_steps=inner_steps,
-                       inner_lr=inner_lr, order=order, task_pool=task_pool)
+                       inner_lr=inner_lr, order=order, epochs=meta_epochs,
+                       task_pool=task_pool)
