@@ -44,11 +44,11 @@ def test_stratified_bootstrap_keeps_strata_apart():
     assert lo == pytest.approx(0.55) and hi == pytest.approx(0.55)
 
 
-def _study(root, finals: dict[str, list[float]], episodes: int = 3):
-    study = root / "ablate-algo-quick"
+def _study(root, finals: dict[str, list[float]], episodes: int = 3, kind: str = "algo"):
+    study = root / f"ablate-{kind}-quick"
     (study / "tune").mkdir(parents=True)
     (study / "study.yaml").write_text(yaml.safe_dump(
-        {"study": "algo", "preset": "quick", "trials": 10,
+        {"study": kind, "preset": "quick", "trials": 10,
          "preset_overrides": {"evaluation_episodes": episodes}}))
     for cond, values in finals.items():
         for seed, final in enumerate(values):
@@ -94,6 +94,23 @@ def test_report_on_a_synthetic_study(tmp_path):
     step = runs["run_0"]["step_1"]  # trial folders sorted: poca seed 0 first
     assert step["step_count"] == 40000 and step["coverage"] == [0.96]
     assert runs["run_0"]["absolute_metrics"] == {"coverage": [0.96], "success": [1.0]}
+
+
+def test_comm_report_compares_scheme_1_with_each_scheme_on_one_panel_each(tmp_path):
+    from PIL import Image
+
+    finals = {c: [0.5, 0.6] for c in ("2", "3", "4", "5", "6", "7", "1-noinfo")}
+    finals["1"] = [0.55, 0.9]
+    finals["6"] = [0.9, 0.95]
+    out = build_report(_study(tmp_path, finals, kind="comm").parent, reference=False)
+    md = (out / "report.md").read_text()
+    # P(1 > 2): (.55 vs .5, .6) -> 1 + 0, (.9 vs .5, .6) -> 1 + 1: 3 of 4 pairs
+    # P(1 > 6): only (.9 vs .9) ties: 0.5 of 4 pairs
+    assert "| 1 > 2 | 0.75" in md and "| 1 > 6 | 0.12" in md and "| 1 > 1-noinfo | 0.75" in md
+    assert "| 6 | 2/2 | 92.5 ± 2.5 |" in md and "| succeed |" in md  # paper's Table II
+    # eight conditions: a 4 x 2 grid of panels, not eight tangled curves in one
+    width, height = Image.open(out / "figures" / "ablate-comm-quick.png").size
+    assert width > 1.8 * 770 and height > 1.2 * 462
 
 
 def test_report_refuses_a_folder_without_runs(tmp_path):
