@@ -206,8 +206,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "Independent runs go in parallel (--jobs; the default fills the Ray "
                     "cluster's CPUs). Re-running resumes: finished runs are skipped, "
                     "interrupted ones continue from their last checkpoint.")
-    mm.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick")
-    mm.add_argument("--seeds", type=int, default=3)
+    mm.add_argument("--preset", choices=("smoke", "quick", "paper"), default="quick",
+                    help="budgets per run: smoke 800 + 800 env steps (tests), quick 100k "
+                         "pre-training + 40k adaptation, paper 8M + 2M (a cluster)")
+    mm.add_argument("--seeds", type=int, default=3, help="seeds per method and test scene")
     mm.add_argument("--tests", default="0,1,2,3,4", help="test scenario indices (0-4)")
     mm.add_argument("--methods", default="meta-mrss,dr,transfer,poca",
                     help="comma-separated subset of meta-mrss,dr,transfer,poca")

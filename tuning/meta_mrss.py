@@ -72,7 +72,7 @@ class Protocol:
     eval_interval: int
 
 
-PROTOCOLS = {
+PROTOCOLS = {  # budgets quoted in `rl-scan experiment meta-mrss --help`
     "smoke": Protocol("smoke", pretrain_steps=800, adapt_steps=800, eval_interval=1),
     "quick": Protocol("quick", pretrain_steps=100_000, adapt_steps=40_000, eval_interval=2),
     "paper": Protocol("paper", pretrain_steps=8_000_000, adapt_steps=2_000_000,
