@@ -10,15 +10,14 @@ import pytest
 
 from rl_scan.cli import main
 from rl_scan.config import ConfigError
+from rl_scan.tuning.jobs import Job, run_jobs
 from rl_scan.tuning.meta_mrss import (
     PROTOCOLS,
-    Job,
     check_jobs,
     curve_metrics,
     format_table,
     parse_tests,
     plan_jobs,
-    run_jobs,
     run_protocol,
     summarize,
 )

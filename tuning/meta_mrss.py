@@ -16,7 +16,8 @@ adaptation env steps) we take, defined up front:
 
 Layout: ``RESULTS/NAME/{pretrain,adapt}/<run>/`` are ordinary run folders (``launch.py``);
 ``summary.json`` and ``table.md`` hold the results. A finished run has a ``DONE`` file;
-re-running the command skips finished runs and resumes interrupted ones.
+re-running the command skips finished runs and resumes interrupted ones. Independent
+runs go side by side (``jobs.py``).
 """
 
 from __future__ import annotations
@@ -24,12 +25,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import signal
-import subprocess
-import sys
-import threading
-import time
-from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,18 +33,17 @@ import numpy as np
 import yaml
 
 from rl_scan import metrics as M
-from rl_scan.config import ConfigError, RunInterrupted, check_range, fail
+from rl_scan.config import ConfigError, check_range, fail
 from rl_scan.envs.sim.scenarios import N_TEST
 from rl_scan.metrics import PROTOCOL_FILE
+from rl_scan.tuning.jobs import Job, run_jobs
 from rl_scan.tuning.launch import (
     EVAL_FILE,
-    RUN_FILE,
     _init_ray,
     build_algorithm_config,
     check_resources,
     required_cpus,
     scenario_label,
-    train,
 )
 from rl_scan.tuning.presets import get_preset
 
@@ -58,7 +52,6 @@ PAPER_SUCCESS = {"meta-mrss": 87.12, "dr": 68.54, "poca": 60.16, "transfer": 71.
 # method -> (algorithm, pre-training scenario); "poca" has no pre-training
 PRETRAIN = {"meta-mrss": ("meta-poca", "train:*"), "dr": ("poca", "train:*"),
             "transfer": ("poca", "train:0")}
-DONE = "DONE"
 TARGET = 0.8
 
 
@@ -109,76 +102,6 @@ def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protoco
     check_range("eval_interval", protocol.eval_interval, 1)
 
 
-def _run(folder: Path, name: str, **kwargs) -> Path:
-    """Train unless finished; resume if interrupted."""
-    run_dir = folder / name
-    if (run_dir / DONE).is_file():
-        return run_dir
-    resume = (run_dir / RUN_FILE).is_file()
-    train(results_dir=folder, name=name, resume=resume, **kwargs)
-    (run_dir / DONE).write_text("finished\n")
-    return run_dir
-
-
-@dataclass(eq=False)
-class Job:
-    """One training run of the protocol; it may start once ``after`` has finished."""
-
-    label: str
-    folder: Path
-    name: str
-    kwargs: dict[str, Any]
-    after: Job | None = None
-
-    def run(self, child: bool = False, address: str | None = None) -> Path:
-        """Train in this process, or in a child process: on the Ray cluster at
-        ``address``, or else on a local Ray of its own (see ``run_jobs``)."""
-        if not child:
-            return _run(self.folder, self.name, address=address, **self.kwargs)
-        spec = {"folder": str(self.folder), "name": self.name, "address": address,
-                **self.kwargs, "init_from": _str_or_none(self.kwargs.get("init_from"))}
-        log = self.folder.parent / LOG_DIR / f"{self.folder.name}_{self.name}.log"
-        log.parent.mkdir(parents=True, exist_ok=True)
-        with open(log, "ab") as err:  # stdout (progress lines) goes to the terminal
-            proc = subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(spec)],
-                                    stderr=err, start_new_session=True)
-            with _CHILDREN_LOCK:
-                _CHILDREN.add(proc)
-            try:
-                code = proc.wait()
-            finally:
-                with _CHILDREN_LOCK:
-                    _CHILDREN.discard(proc)
-        if code != 0:
-            tail = log.read_text(errors="replace").strip().splitlines()[-5:]
-            raise RuntimeError(f"{self.name} exited with code {code}; from {log}:\n"
-                               + "\n".join(tail))
-        return self.folder / self.name
-
-
-LOG_DIR = "logs"  # stderr of every run started in a child process
-LAUNCH_GAP_S = 2.0  # between child runs on a shared cluster (see run_jobs)
-_CHILD = ("import sys; from rl_scan.tuning.meta_mrss import child_main; "
-          "sys.exit(child_main(sys.argv[1]))")
-_CHILDREN: set[subprocess.Popen] = set()
-_CHILDREN_LOCK = threading.Lock()
-
-
-def _str_or_none(value: Any) -> str | None:
-    return None if value is None else str(value)
-
-
-def child_main(spec_json: str) -> int:
-    """Entry point of a run in a child process (``Job.run`` with an address)."""
-    spec = json.loads(spec_json)
-    try:
-        _run(Path(spec.pop("folder")), spec.pop("name"), **spec)
-    except RunInterrupted as e:
-        print(f"interrupted: {e}", file=sys.stderr)  # the parent says how to resume
-        return 130
-    return 0
-
-
 def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
               protocol: Protocol, env_config: dict[str, Any]) -> list[Job]:
     """Every run of the protocol, seed by seed (the order runs start in): each method's
@@ -221,63 +144,6 @@ def check_jobs(jobs: list[Job]) -> None:
             seen.add(key)
             preset = get_preset(kw["preset_name"], kw["preset_overrides"])
             build_algorithm_config(kw["algo"], kw["env_config"], preset, kw["seed"])
-
-
-def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None) -> None:
-    """Run ``jobs`` in list order, ``workers`` at a time, each as soon as its
-    prerequisite has finished. After a failure no new job starts; the running ones
-    finish and the first error is raised.
-
-    One worker runs the jobs in this process. More run each job in a child process,
-    because two Tune runs must not share a driver process (Tune's trainable registry is
-    not thread-safe) nor, locally, a Ray session (runs starting in the same second with
-    the same experiment name share one staging folder, which Tune then syncs into both
-    run folders). A child joins the cluster at ``address`` if given (launches are
-    spaced ``LAUNCH_GAP_S`` apart for this reason), else starts a local Ray of its own.
-    Ctrl+C is passed on to the children, which stop at once (Tune keeps their state):
-    running the protocol again resumes them.
-    """
-    def start(job: Job, count: int) -> None:
-        console.print(f"[bold]meta-mrss[/] run {count}/{len(jobs)}: {job.label}")
-
-    if workers == 1:  # in this thread, so Tune's own Ctrl+C handling applies
-        for count, job in enumerate(jobs, 1):
-            start(job, count)
-            job.run(address=address)
-        return
-    waiting, running, finished = list(jobs), {}, set()
-    failure: BaseException | None = None
-    last_launch = -math.inf
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="protocol") as pool:
-        try:
-            while running or (waiting and failure is None):
-                ready = [j for j in waiting if j.after is None or j.after in finished]
-                for job in ready[:workers - len(running)] if failure is None else []:
-                    waiting.remove(job)
-                    start(job, len(jobs) - len(waiting))
-                    if address is not None:
-                        time.sleep(max(0.0, last_launch + LAUNCH_GAP_S - time.monotonic()))
-                        last_launch = time.monotonic()
-                    running[pool.submit(job.run, True, address)] = job
-                if not running:  # nothing can start: a prerequisite failed
-                    break
-                done, _ = wait(running, return_when=FIRST_COMPLETED)
-                for future in done:
-                    job, error = running.pop(future), future.exception()
-                    if error is None:
-                        finished.add(job)
-                    else:
-                        failure = failure or error
-                        console.print(f"[red]meta-mrss: {job.name} failed[/]: {error}")
-        except KeyboardInterrupt:
-            console.print("[red]interrupted[/]: stopping the running runs; run the same "
-                          "command again to resume them")
-            with _CHILDREN_LOCK:
-                for proc in _CHILDREN:
-                    proc.send_signal(signal.SIGINT)
-            raise
-    if failure is not None:
-        raise failure
 
 
 def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
