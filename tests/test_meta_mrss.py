@@ -171,8 +171,14 @@ def test_smoke_protocol_end_to_end(ray_session, tmp_path):
     assert run["env_config"]["scenario"] == "test:0"
     for method in ("meta-mrss", "poca"):
         curve = summary["methods"][method]["runs"][f"{method}_test0_s0"]["curve"]
-        assert len(curve) == PROTOCOLS["smoke"].adapt_steps // 400  # one eval per iteration
+        evals = PROTOCOLS["smoke"].adapt_steps // 400  # one per iteration
+        # a pre-trained start is also evaluated before adaptation (evaluation 0)
+        assert [s for s, _ in curve] == [0] * (method == "meta-mrss") + [
+            400 * (i + 1) for i in range(evals)]
         assert all(0.0 <= c <= 1.0 for _, c in curve)
+    entries = json.loads((meta_run / "eval_metrics.json").read_text())
+    assert entries[0]["training_iteration"] == 0
+    assert set(entries[1]) - set(entries[0]) <= {"module_returns"}  # the same metrics
     assert not summary["missing"]
     assert (root / "table.md").read_text().count("|") > 10
 

@@ -189,6 +189,13 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
         }, sort_keys=False)
         run_dir.mkdir(parents=True)
         (run_dir / RUN_FILE).write_text(text)
+        if init_from is not None and preset.evaluation_interval > 0:
+            start = evaluate_start_weights(init_from, env_cfg, preset.evaluation_episodes,
+                                           seed)
+            (run_dir / EVAL_FILE).write_text(json.dumps([start], indent=1, default=float))
+            console.print(f"start weights on {env_cfg.scenario}: coverage "
+                          f"{start['coverage']:.3f} over {preset.evaluation_episodes} episodes "
+                          "(evaluation 0)")
     progress = ProgressCallback(run_dir, preset.total_env_steps, preset.evaluation_interval)
     algo_cls = config.algo_class
     if resume:
@@ -221,6 +228,37 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
         raise RunInterrupted(f"{name} stopped at {steps:,} of {preset.total_env_steps:,} "
                              "env steps; its last checkpoint is kept")
     return run_dir
+
+
+def evaluate_start_weights(checkpoint: Path, env_cfg, episodes: int, seed: int) -> dict:
+    """Evaluation 0 of a run that starts from other weights: its start policy on its own
+    env before any training (how well a pre-trained policy does zero-shot), with the
+    sampled actions and the keys of RLlib's evaluations (``append_eval``)."""
+    import numpy as np
+    import torch
+
+    from rl_scan import metrics as M
+    from rl_scan.algorithms.rollout import PolicyTeam, load_actors
+    from rl_scan.envs.core import ScanCore
+    from rl_scan.envs.heuristics import run_episode
+
+    core, team = ScanCore(env_cfg), PolicyTeam(load_actors(Path(checkpoint)))
+    torch.manual_seed(seed)
+    episodes_metrics = [run_episode(core, team, seed=10_000 * (seed + 1) + i)
+                        for i in range(episodes)]
+    entry = {"training_iteration": 0, "env_steps": 0, "time_total_s": 0.0,
+             "episode_return_mean": float(np.mean([
+                 sum(m[k] * n for k, n in zip(M.RETURN_BY_KIND.values(),
+                                              (env_cfg.team.wheeled, env_cfg.team.quad)))
+                 for m in episodes_metrics]))}
+    for key in M.EPISODE_METRICS:
+        values = np.array([m[key] for m in episodes_metrics], dtype=float)
+        if key in M.STEPS_TO.values():  # as the callback: the mean over runs reaching it
+            entry["reached_" + key[len("steps_to_"):]] = float(np.mean(~np.isnan(values)))
+            values = values[~np.isnan(values)]
+        if len(values):
+            entry[key] = float(values.mean())
+    return entry
 
 
 class ProgressCallback(Callback):
