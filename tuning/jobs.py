@@ -111,7 +111,7 @@ def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None)
     running the protocol again resumes them.
     """
     def start(job: Job, count: int) -> None:
-        console.print(f"[bold]runs[/] run {count}/{len(jobs)}: {job.label}")
+        console.print(f"[bold]run {count}/{len(jobs)}[/]: {job.label}")
 
     if workers == 1:  # in this thread, so Tune's own Ctrl+C handling applies
         for count, job in enumerate(jobs, 1):
