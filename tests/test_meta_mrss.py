@@ -121,10 +121,13 @@ def test_curve_metrics_by_hand():
     curve = [{"env_steps": 400, "coverage": 0.5, "success": 0.0},
              {"env_steps": 800, "coverage": 0.82, "success": 0.0},
              {"env_steps": 1200, "coverage": 0.97, "success": 2 / 3}]
-    assert curve_metrics(curve) == {"final_coverage": 0.97, "steps_to_80": 800.0,
-                                    "success": 2 / 3}
+    got = curve_metrics(curve)
+    assert math.isnan(got.pop("start_coverage"))  # no evaluation 0: started from scratch
+    assert got == {"final_coverage": 0.97, "steps_to_80": 800.0, "success": 2 / 3}
     never = curve_metrics(curve[:1])
     assert math.isnan(never["steps_to_80"]) and never["final_coverage"] == 0.5
+    warm = curve_metrics([{"env_steps": 0, "coverage": 0.85, "success": 0.0}, *curve])
+    assert warm["start_coverage"] == 0.85 and warm["steps_to_80"] == 0.0  # zero-shot
 
 
 def _eval_file(root, method, test, seed, points):
@@ -137,8 +140,8 @@ def _eval_file(root, method, test, seed, points):
 def test_summary_means_and_stds_over_seeds_by_hand(tmp_path):
     # seed 0: test0 reaches 80 % at 200 (final .9), test1 at 400 (final .96)
     # seed 1: test0 never (final .6), test1 at 200 (final .85); test1 of "poca" is missing
-    _eval_file(tmp_path, "meta-mrss", "test:0", 0, [(200, 0.8), (400, 0.9)])
-    _eval_file(tmp_path, "meta-mrss", "test:1", 0, [(200, 0.7), (400, 0.96)])
+    _eval_file(tmp_path, "meta-mrss", "test:0", 0, [(0, 0.3), (200, 0.8), (400, 0.9)])
+    _eval_file(tmp_path, "meta-mrss", "test:1", 0, [(0, 0.5), (200, 0.7), (400, 0.96)])
     _eval_file(tmp_path, "meta-mrss", "test:0", 1, [(200, 0.5), (400, 0.6)])
     _eval_file(tmp_path, "meta-mrss", "test:1", 1, [(200, 0.81), (400, 0.85)])
     _eval_file(tmp_path, "poca", "test:0", 0, [(200, 0.1), (400, 0.2)])
@@ -152,6 +155,10 @@ def test_summary_means_and_stds_over_seeds_by_hand(tmp_path):
     assert meta["steps_to_80"]["values"] == pytest.approx([300.0, 200.0])
     assert meta["reached_80"]["values"] == pytest.approx([1.0, 0.5])
     assert meta["success"]["values"] == pytest.approx([0.5, 0.0])
+    # zero-shot: seed 0's runs start at .3 and .5 -> .4; seed 1's have no evaluation 0
+    assert meta["start_coverage"]["values"][0] == pytest.approx(0.4)
+    assert math.isnan(meta["start_coverage"]["values"][1])
+    assert meta["start_coverage"]["mean"] == pytest.approx(0.4)
     assert len(s["missing"]) == 3  # poca: test1 s0, test0 s1, test1 s1
     table = format_table(s)
     assert "87.12" in table and "60.16" in table and "missing runs (3)" in table
