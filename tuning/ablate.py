@@ -31,7 +31,7 @@ from rl_scan.algorithms.callbacks import EVAL_SCORE
 from rl_scan.config import check_range, fail
 from rl_scan.tuning.launch import (
     ENV_STEPS,
-    _init_ray,
+    init_ray,
     append_eval,
     build_algorithm_config,
     check_output_folder,
@@ -157,7 +157,7 @@ def ablate(study: str, preset_name: str = "quick", *, seeds: int = 3, trials: in
     for params in _example_params(study, space):  # every condition builds before Ray starts
         algo, env, kw = condition_run(study, params, env_config)
         build_algorithm_config(algo, env, preset, algo_kwargs=kw)
-    cpus = _init_ray(address)
+    cpus = init_ray(address)
     check_resources(preset, cpus)
 
     import optuna

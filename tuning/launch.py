@@ -139,7 +139,7 @@ def _versions() -> dict[str, str]:
     return {name: str(mod.__version__) for name, mod in mods.items()}
 
 
-def _init_ray(address: str | None) -> float:
+def init_ray(address: str | None) -> float:
     import ray
 
     if not ray.is_initialized():
@@ -175,7 +175,7 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
 
         init_from = resolve_checkpoint(init_from)
     config = build_algorithm_config(algo, env_config, preset, seed, init_from)
-    cpus = _init_ray(address)
+    cpus = init_ray(address)
     check_resources(preset, cpus)
 
     from ray import tune

@@ -39,7 +39,7 @@ from rl_scan.metrics import PROTOCOL_FILE
 from rl_scan.tuning.jobs import Job, run_jobs
 from rl_scan.tuning.launch import (
     EVAL_FILE,
-    _init_ray,
+    init_ray,
     build_algorithm_config,
     check_resources,
     required_cpus,
@@ -250,7 +250,7 @@ def _available_cpus(address: str | None) -> float:
     import ray
 
     if address or ray.is_initialized():
-        return _init_ray(address)
+        return init_ray(address)
     return float(os.cpu_count() or 1)
 
 
