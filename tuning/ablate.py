@@ -31,12 +31,12 @@ from rl_scan.algorithms.callbacks import EVAL_SCORE
 from rl_scan.config import check_range, fail
 from rl_scan.tuning.launch import (
     ENV_STEPS,
-    init_ray,
     append_eval,
     build_algorithm_config,
     check_output_folder,
     check_resources,
     git_commit,
+    init_ray,
 )
 from rl_scan.tuning.presets import get_preset
 

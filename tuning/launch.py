@@ -140,6 +140,7 @@ def _versions() -> dict[str, str]:
 
 
 def init_ray(address: str | None) -> float:
+    """Join the Ray cluster at ``address`` or start a local Ray (once); its CPU count."""
     import ray
 
     if not ray.is_initialized():

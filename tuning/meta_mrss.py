@@ -39,9 +39,9 @@ from rl_scan.metrics import PROTOCOL_FILE
 from rl_scan.tuning.jobs import Job, run_jobs
 from rl_scan.tuning.launch import (
     EVAL_FILE,
-    init_ray,
     build_algorithm_config,
     check_resources,
+    init_ray,
     required_cpus,
     scenario_label,
 )
