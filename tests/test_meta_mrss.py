@@ -234,8 +234,12 @@ def test_ctrl_c_stops_parallel_runs_unfinished_and_a_rerun_completes_them(tmp_pa
     cmd = [sys.executable, "-m", "rl_scan.cli", "experiment", "meta-mrss", "--preset", "smoke",
            "--methods", "poca", "--tests", "0,1", "--seeds", "1", "--adapt-steps", "6000",
            "--jobs", "2", "--results", str(tmp_path), "--name", "mm"]
+    # SIGINT back to default in the child: a test run started in the background by a
+    # non-interactive shell inherits SIGINT ignored, and Python then never raises
+    # KeyboardInterrupt (the command would finish with 0).
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     adapt = tmp_path / "mm" / "adapt"
     runs = [adapt / "poca_test0_s0", adapt / "poca_test1_s0"]
     deadline = time.time() + 180
