@@ -13,29 +13,41 @@ import time
 
 import pytest
 
+from rl_scan import results as R
 from rl_scan.cli import main
-from rl_scan.tuning.ablate import COMM_CONDITIONS, condition_run, search_space
+from rl_scan.studies import STUDIES, TrialRun
+from rl_scan.tuning.ablate import search_space
+from rl_scan.tuning.driver import make_run_spec
 
 
 def test_conditions_map_to_runs():
-    assert len(COMM_CONDITIONS) == 8  # Table II's seven schemes + no object information
-    assert condition_run("comm", {"condition": "5"}, {}) == (
-        "poca", {"comm_scheme": 5, "object_info": True}, {})
-    assert condition_run("comm", {"condition": "1-noinfo"}, {"scenario": "test:1"}) == (
-        "poca", {"scenario": "test:1", "comm_scheme": 1, "object_info": False}, {})
-    assert condition_run("algo", {"condition": "ppo"}, {})[0] == "ppo"
-    assert condition_run("team", {"condition": "0,4"}, {})[1] == {
+    comm = STUDIES["comm"]
+    assert len(comm.conditions) == 8  # Table II's seven schemes + no object information
+    assert comm.run_of({"condition": "5"}) == TrialRun(
+        "poca", {"comm_scheme": 5, "object_info": True})
+    assert STUDIES["algo"].run_of({"condition": "ppo"}).algo == "ppo"
+    assert STUDIES["team"].run_of({"condition": "0,4"}).env == {
         "team": {"wheeled": 0, "quad": 4}}
-    algo, _, kw = condition_run("hpo", {"lr": 1e-3, "entropy_coeff": 0.01, "lambda_": 0.9,
-                                        "num_epochs": 2.0}, {})
-    assert algo == "poca" and kw == {"lr": 1e-3, "entropy_coeff": 0.01, "lambda_": 0.9,
-                                     "num_epochs": 2}
+    run = STUDIES["hpo"].run_of({"lr": 1e-3, "entropy_coeff": 0.01, "lambda_": 0.9,
+                                 "num_epochs": 2.0})
+    assert run.algo == "poca" and run.algo_kwargs == {"lr": 1e-3, "entropy_coeff": 0.01,
+                                                      "lambda_": 0.9, "num_epochs": 2}
+
+
+def test_a_trial_keeps_the_users_env_under_its_condition():
+    base = make_run_spec("poca", {"scenario": "test:1", "comm_scheme": 4}, "smoke")
+    spec = base.for_trial("comm", {"condition": "1-noinfo", "seed": 2})
+    assert (spec.env.scenario, spec.env.comm_scheme, spec.env.object_info) == (
+        "test:1", 1, False)
+    assert spec.env.max_steps == 50  # the smoke preset's env override stays
+    assert (spec.algo, spec.seed, spec.study) == ("poca", 2, "comm")
+    assert base.for_trial("algo", {"condition": "ppo", "seed": 0}).algo == "ppo"
 
 
 def test_grid_size_is_conditions_times_seeds():
-    assert search_space("comm", 3)[2] == 24
-    assert search_space("team", 2)[2] == 6
-    assert search_space("hpo", 3)[2] is None  # TPE: --trials decides
+    assert search_space(STUDIES["comm"], 3)[2] == 24
+    assert search_space(STUDIES["team"], 2)[2] == 6
+    assert search_space(STUDIES["hpo"], 3)[2] is None  # TPE: --trials decides
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -60,7 +72,7 @@ def test_smoke_study_is_killed_and_resumed_to_completion(tmp_path):
            "--name", "study"]
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    tune_dir = tmp_path / "study" / "tune"
+    tune_dir = tmp_path / "study" / R.TUNE_DIR
     deadline = time.time() + 180
     while time.time() < deadline and len(list(tune_dir.glob("*/checkpoint_*"))) < 3:
         time.sleep(0.2)
@@ -73,15 +85,16 @@ def test_smoke_study_is_killed_and_resumed_to_completion(tmp_path):
                               storage=f"sqlite:///{tmp_path / 'study' / 'optuna.db'}")
     done = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
     assert sorted(t.params["condition"] for t in done) == ["poca", "ppo"]
-    for trial_dir in [p for p in tune_dir.iterdir() if p.is_dir()]:
-        with open(trial_dir / "progress.csv") as f:
-            steps = [int(float(r["num_env_steps_sampled_lifetime"]))
-                     for r in csv.DictReader(f)]
+    runs = sorted((tmp_path / "study" / R.TRIALS_DIR).iterdir())
+    assert len(runs) == 2
+    for run in runs:
+        with open(R.tune_trial_dir(run) / R.PROGRESS_FILE) as f:
+            steps = [int(float(r[R.ENV_STEPS])) for r in csv.DictReader(f)]
         # a restart from scratch would log 400, 800, ... again after the kill
         assert steps == sorted(set(steps)) and steps[-1] == 2400
-        evals = json.loads((trial_dir / "eval_metrics.json").read_text())
+        evals = json.loads((run / R.EVAL_FILE).read_text())
         iters = [e["training_iteration"] for e in evals]
         assert iters == sorted(set(iters)) and evals[-1]["env_steps"] == 2400
-        value = next(t.value for t in done
-                     if t.params["condition"] in trial_dir.name)
+        condition = R.read_yaml(run / R.RUN_FILE)["params"]["condition"]
+        value = next(t.value for t in done if t.params["condition"] == condition)
         assert value == pytest.approx(evals[-1]["coverage"])  # Optuna got the final score

@@ -94,7 +94,7 @@ def test_every_help_page_renders_its_percent_signs():
     """Descriptions are not %-formatted by argparse (help strings are): no stray '%%'."""
     import argparse
 
-    from rl_scan.cli import build_parser
+    from rl_scan.cli.parser import build_parser
 
     def pages(parser):
         yield parser.format_help()

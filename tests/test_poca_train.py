@@ -54,7 +54,7 @@ def test_poca_smoke_preset_through_tune(ray_session, tmp_path):
 
 def test_poca_runs_on_another_env_mpe_simple_spread(ray_session):
     """POCA is not tied to the scanning env: it trains on PettingZoo MPE (3 agents)."""
-    from rl_scan.bench_mpe import train_mpe
+    from rl_scan.cli.bench_mpe import train_mpe
 
     curve = train_mpe("poca", 0, env_steps=400, train_batch_size=200, minibatch_size=128,
                       num_epochs=1, hiddens=[16, 16])

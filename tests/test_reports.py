@@ -9,6 +9,7 @@ import math
 import pytest
 import yaml
 
+from rl_scan import results as R
 from rl_scan.reports.build import build_report, condition_rows
 from rl_scan.reports.collect import collect
 from rl_scan.reports.stats import (
@@ -45,24 +46,28 @@ def test_stratified_bootstrap_keeps_strata_apart():
 
 
 def _study(root, finals: dict[str, list[float]], episodes: int = 3, kind: str = "algo"):
+    """A study folder as ``rl-scan ablate`` writes it (rl_scan.results' layout)."""
     study = root / f"ablate-{kind}-quick"
-    (study / "tune").mkdir(parents=True)
-    (study / "study.yaml").write_text(yaml.safe_dump(
-        {"study": kind, "preset": "quick", "trials": 10,
-         "preset_overrides": {"evaluation_episodes": episodes}}))
+    study.mkdir(parents=True)
+    (study / R.STUDY_FILE).write_text(yaml.safe_dump(
+        {"study": kind, "preset": "quick", "trials": 10, "evaluation_episodes": episodes}))
     for cond, values in finals.items():
         for seed, final in enumerate(values):
-            trial = study / "tune" / f"run_trial_{cond}_{seed}"
-            trial.mkdir()
-            (trial / "condition.json").write_text(json.dumps(
-                {"algo": cond, "params": {"condition": cond, "seed": seed},
-                 "env_config": {"scenario": "ablation"}}))
+            trial_id = f"{cond}_{seed}"
+            run = R.trial_run_dir(study, trial_id)
+            run.mkdir(parents=True)
+            (run / R.RUN_FILE).write_text(yaml.safe_dump(
+                {"algo": cond, "seed": seed, "params": {"condition": cond, "seed": seed},
+                 "preset_config": {"evaluation_episodes": episodes},
+                 "env_config": {"scenario": "ablation"}, "tune_trial": trial_id}))
             evals = [{"training_iteration": 5, "env_steps": 20000, "coverage": final / 2,
                       "success": 0.0},
                      {"training_iteration": 10, "env_steps": 40000, "coverage": final,
                       "success": 1.0 if final >= 0.95 else 0.0}]
-            (trial / "eval_metrics.json").write_text(json.dumps(evals))
-            (trial / "progress.csv").write_text(
+            (run / R.EVAL_FILE).write_text(json.dumps(evals))
+            tune_trial = R.tune_trial_dir(run)
+            tune_trial.mkdir(parents=True)
+            (tune_trial / R.PROGRESS_FILE).write_text(
                 "training_iteration,num_env_steps_sampled_lifetime,time_total_s\n"
                 "10,40000,100.0\n")
     return study

@@ -1,0 +1,1 @@
+"""Learning algorithms: POCA, the PPO baseline and MetaPOCA (meta-MRSS); ``registry`` names them."""

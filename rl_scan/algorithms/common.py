@@ -1,0 +1,58 @@
+"""Settings every rl-scan algorithm shares: env, policy mapping, runners, eval, metrics.
+
+Both POCA and the PPO baseline train one policy module per robot kind present in the
+team ("wheeled", "quad") with the same actor size, on ``ScanMultiAgentEnv``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
+
+from rl_scan.algorithms.callbacks import ScanMetricsCallback
+from rl_scan.config import to_dict
+from rl_scan.envs.observations import kind_of
+from rl_scan.envs.rllib_env import ScanMultiAgentEnv
+from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
+
+ACTOR_HIDDENS = (256, 256, 128)  # the paper's 3-layer MLP encoder (sizes assumed)
+
+
+def policy_mapping(agent_id: str, episode: Any = None, **kwargs: Any) -> str:
+    """'quad_1' -> 'quad': one policy module per robot kind."""
+    return kind_of(agent_id)
+
+
+def team_kinds(env_config: EnvConfig | dict[str, Any]) -> list[str]:
+    """The robot kinds present in the env's team."""
+    team = make_env_config(env_config).team
+    return [k for k, n in (("wheeled", team.wheeled), ("quad", team.quad)) if n > 0]
+
+
+def configure_scan(config: AlgorithmConfig, env_config: EnvConfig | dict[str, Any], *,
+                   num_env_runners: int = 0, num_envs_per_env_runner: int = 1,
+                   evaluation_interval: int = 0, evaluation_episodes: int = 1,
+                   seed: int = 0) -> AlgorithmConfig:
+    """Apply the shared settings to an algorithm config (returns the same object).
+
+    A mapping is validated here; the typed config becomes a dict only for RLlib, which
+    hands it to every env it creates."""
+    env = make_env_config(env_config)
+    config = (config
+              .environment(ScanMultiAgentEnv, env_config=to_dict(env))
+              .env_runners(num_env_runners=num_env_runners,
+                           num_envs_per_env_runner=num_envs_per_env_runner)
+              .learners(num_learners=0)
+              .multi_agent(policies=set(team_kinds(env)), policy_mapping_fn=policy_mapping)
+              .callbacks(ScanMetricsCallback)
+              .debugging(seed=seed))
+    if evaluation_interval > 0:
+        config = config.evaluation(
+            evaluation_interval=evaluation_interval, evaluation_duration=evaluation_episodes,
+            evaluation_duration_unit="episodes", evaluation_num_env_runners=0,
+            # Sampled actions, as ML-Agents (and so the paper's curves) evaluate: the env
+            # clips a Gaussian's samples, so a mean beyond +-1 gets no gradient and
+            # mean actions are not the policy that was trained.
+            evaluation_config=type(config).overrides(explore=True))
+    return config

@@ -1,0 +1,33 @@
+"""The PPO baseline: RLlib's own PPO, one module per robot kind, POCA's actor size.
+
+Independent learners with per-agent critics (no centralized critic): what the paper
+compares POCA against with "the same hyperparameters".
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ray.rllib.algorithms.ppo import PPOConfig
+from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
+
+from rl_scan.algorithms.common import ACTOR_HIDDENS, configure_scan
+from rl_scan.algorithms.optim import FusedAdamPPOTorchLearner
+from rl_scan.envs.sim.env_config import EnvConfig
+
+
+def ppo_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size: int,
+               minibatch_size: int, num_epochs: int = 3, lr: float = 3e-4, gamma: float = 0.99,
+               lambda_: float = 0.95, clip_param: float = 0.2, entropy_coeff: float = 0.005,
+               **common: Any) -> PPOConfig:
+    """PPOConfig for the scanning env (``common`` goes to ``configure_scan``)."""
+    config = configure_scan(PPOConfig(), env_config, **common)
+    return (config
+            .rl_module(model_config=DefaultModelConfig(
+                fcnet_hiddens=list(ACTOR_HIDDENS), fcnet_activation="relu",
+                vf_share_layers=False))
+            .training(learner_class=FusedAdamPPOTorchLearner,
+                      train_batch_size_per_learner=train_batch_size,
+                      minibatch_size=minibatch_size, num_epochs=num_epochs, lr=lr,
+                      gamma=gamma, lambda_=lambda_, clip_param=clip_param,
+                      entropy_coeff=entropy_coeff))

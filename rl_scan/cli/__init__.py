@@ -1,0 +1,55 @@
+"""The ``rl-scan`` command line, the top floor: ``parser.py`` reads the arguments,
+``commands.py`` does the work, ``env_args.py`` turns flags into an env config and the
+``bench_*.py`` modules are the benchmarks.
+
+  rl-scan scenario show|export      a scenario's objects, cells and starts / YAML or mesh
+  rl-scan bench env|train|mpe       simulator speed, training speed, MPE external check
+  rl-scan train                     train POCA or PPO through Ray Tune
+  rl-scan meta-train / adapt        MetaPOCA; adapt (fine-tune) a checkpoint to a scene
+  rl-scan experiment meta-mrss      the paper's protocol on held-out scenes
+  rl-scan ablate comm|algo|team|hpo Tune + Optuna studies
+  rl-scan evaluate / render / replay  metrics table, GIF/PNG, interactive 3D replay
+  rl-scan report RESULTS_DIR        Markdown + HTML report with figures and statistics
+
+Errors in the input (unknown keys, bad values, missing files) print one line naming the
+field and exit with status 2 before anything runs.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from rl_scan.config import ConfigError, RunInterrupted
+
+
+def main(argv: list[str] | None = None) -> int:
+    from rl_scan.cli.parser import build_parser
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    ray_was_up = _ray_is_up()
+    try:
+        return args.func(args)
+    except (ConfigError, ValueError) as e:
+        print(f"rl-scan {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except (RunInterrupted, KeyboardInterrupt) as e:
+        again = ("run the same command again to continue" if args.command == "experiment"
+                 else "the same command with --resume continues it")
+        print(f"rl-scan {args.command}: interrupted{f': {e}' if str(e) else ''}; {again}",
+              file=sys.stderr)
+        return 130
+    finally:
+        if not ray_was_up and _ray_is_up():
+            # A command that started Ray stops it, so in-process callers (notebooks, tests)
+            # can start their own Ray afterwards ("ray.init twice" otherwise).
+            import ray
+
+            ray.shutdown()
+
+
+def _ray_is_up() -> bool:
+    """Whether Ray is initialised in this process, without importing Ray if nothing did."""
+    ray = sys.modules.get("ray")
+    return ray is not None and ray.is_initialized()
+

@@ -1,0 +1,249 @@
+from __future__ import annotations
+
+import argparse
+
+from rl_scan.algorithms.registry import ALGORITHMS
+from rl_scan.cli import commands
+from rl_scan.results import BEST_EVAL_FILE
+from rl_scan.studies import STUDIES
+from rl_scan.tuning.presets import PRESETS, PROTOCOLS
+
+EXAMPLES = """examples:
+  rl-scan scenario show ablation
+  rl-scan scenario show test:3 --team 1,3
+  rl-scan scenario export train:12 scene.yaml
+  rl-scan bench env --seconds 3
+  rl-scan render --scenario test:0 --out runs/test0.gif --every 5
+  rl-scan train --algo ppo --preset smoke --scenario ablation
+"""
+
+
+def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
+    """Options every Tune-launched run shares (train, meta-train, adapt)."""
+    p.add_argument("--preset", choices=tuple(PRESETS), default="quick",
+                   help="budget: smoke (seconds), quick (minutes, default), paper (cluster)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--results", default="results", help="results folder (default results/)")
+    p.add_argument("--name", default=None, help=f"run name (default {default_name})")
+    p.add_argument("--address", default=None, help="Ray cluster address (default: local)")
+    p.add_argument("--resume", action="store_true", help="continue the run named --name")
+    p.add_argument("--num-env-runners", type=int, default=None,
+                   help="remote sampling actors (preset default; each needs a CPU)")
+    p.add_argument("--envs-per-runner", type=int, default=None, help="envs per env runner")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from rl_scan.cli.env_args import add_env_args
+
+    fmt = argparse.RawDescriptionHelpFormatter
+    parser = argparse.ArgumentParser(
+        prog="rl-scan", formatter_class=fmt, epilog=EXAMPLES,
+        description="Multi-robot 3D scanning with RLlib: simulator, training and reports.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    sc = sub.add_parser("scenario", formatter_class=fmt, help="show or export a scenario",
+                        description="Show a scenario's objects, cell counts and robot starts, "
+                                    "or export it as a scenario YAML or a mesh file.")
+    sc_sub = sc.add_subparsers(dest="action", required=True, metavar="ACTION")
+    show = sc_sub.add_parser("show", help="print objects, cells and starts")
+    show.add_argument("name", help="ablation | train:N | test:N | random | a .yaml file")
+    add_env_args(show, scenario=None)
+    export = sc_sub.add_parser("export", help="write the scenario to .yaml or .obj/.stl/.glb/.ply")
+    export.add_argument("name", help="ablation | train:N | test:N | a .yaml file")
+    export.add_argument("out", help="output path; the suffix chooses the format")
+    add_env_args(export, scenario=None)
+    for p in (show, export):
+        p.set_defaults(func=commands.scenario_cmd)
+
+    bench = sub.add_parser("bench", formatter_class=fmt, help="benchmarks",
+                           description="Benchmarks printing figures and ratios from one run.")
+    bench_sub = bench.add_subparsers(dest="what", required=True, metavar="WHAT")
+    benv = bench_sub.add_parser(
+        "env", formatter_class=fmt, help="simulator and adapter speed, scripted-team coverage",
+        description="Core simulator env steps/s (random actions, all rays), the raycast "
+                    "kernel's rays/s against the measured limit, the RLlib and PettingZoo "
+                    "adapters' env steps/s, peak memory, and the coverage of the greedy and "
+                    "random scripted teams on the ablation and the five test scenarios. "
+                    "Run it on an idle machine; it pins itself to one core.")
+    benv.add_argument("--seconds", type=float, default=3.0, help="time per speed measurement")
+    benv.add_argument("--seeds", type=int, default=3, help="episodes per scripted team/scene")
+    benv.add_argument("--no-pin", action="store_true", help="do not pin to one CPU core")
+    benv.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    add_env_args(benv)
+    benv.set_defaults(func=commands.bench_cmd)
+    btrain = bench_sub.add_parser(
+        "train", formatter_class=fmt, help="end-to-end training throughput",
+        description="Env steps/s of train() (sampling + learning) for each algorithm on the "
+                    "same env and batch sizes with 0 env runners, and for the first "
+                    "algorithm with 1 and 2 env runners; peak RSS of the Ray process tree.")
+    btrain.add_argument("--algos", default="ppo,poca",
+                        help="comma-separated algorithms; the first is the reference")
+    btrain.add_argument("--iterations", type=int, default=3, help="timed train() calls")
+    btrain.add_argument("--batch", type=int, default=2000, help="env steps per iteration")
+    btrain.add_argument("--minibatch", type=int, default=512, help="agent rows per minibatch")
+    btrain.add_argument("--epochs", type=int, default=3)
+    btrain.add_argument("--envs-per-runner", type=int, default=4)
+    btrain.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    add_env_args(btrain)
+    btrain.set_defaults(func=commands.bench_train_cmd)
+    bmpe = bench_sub.add_parser(
+        "mpe", formatter_class=fmt, help="POCA vs PPO on PettingZoo MPE simple_spread_v3",
+        description="External check: train each algorithm on simple_spread_v3 (mpe2, 3 "
+                    "agents, continuous actions) with the same actor size, budget and seeds, "
+                    "and print the final mean episode returns.")
+    bmpe.add_argument("--algos", default="ppo,poca", help="comma-separated algorithms")
+    bmpe.add_argument("--seeds", type=int, default=3)
+    bmpe.add_argument("--env-steps", type=int, default=100_000, help="budget per run")
+    bmpe.add_argument("--json", default=None, help="also write curves and figures here")
+    bmpe.set_defaults(func=commands.bench_mpe_cmd)
+
+    tr = sub.add_parser(
+        "train", formatter_class=fmt, help="train POCA or PPO through Ray Tune",
+        description="Train a team through Ray Tune (local by default, a Ray cluster with "
+                    "--address). Writes RESULTS/NAME/ with run.yaml (config, seed, git commit), "
+                    "eval_metrics.json, and tune/trial/ with progress.csv, TensorBoard events "
+                    "and checkpoints; "
+                    "--resume continues an interrupted run from its last checkpoint.")
+    tr.add_argument("--algo", choices=tuple(ALGORITHMS), default="poca",
+                    help="; ".join(f"{a.name}: {a.summary}" for a in ALGORITHMS.values())
+                    + " (default poca)")
+    _add_run_args(tr, "ALGO_SCENARIO_PRESET_sSEED")
+    tr.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
+    tr.add_argument("--init-from", default=None, metavar="CHECKPOINT",
+                    help="start from this checkpoint's (or run folder's) weights")
+    add_env_args(tr)
+    tr.set_defaults(func=commands.train_cmd)
+
+    mt = sub.add_parser(
+        "meta-train", formatter_class=fmt, help="meta-train MetaPOCA (meta-MRSS) through Tune",
+        description="Meta-train POCA with MAML (the paper's Algorithm 1): per meta-iteration "
+                    "the preset's meta_tasks train scenarios, meta_episodes support episodes "
+                    "each, inner_steps adaptation steps (first order, inner Adam), as many "
+                    "query episodes, one meta update. Same run folder, --resume and "
+                    "checkpoints as `train`; --scenario is what evaluation uses.")
+    _add_run_args(mt, "meta-poca_SCENARIO_PRESET_sSEED")
+    mt.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
+    add_env_args(mt)
+    mt.set_defaults(func=commands.train_cmd, algo="meta-poca")
+
+    ad = sub.add_parser(
+        "adapt", formatter_class=fmt, help="adapt a trained team to a scenario (POCA)",
+        description="Fine-tune a checkpoint's team (meta-trained or not) with POCA on a "
+                    "scenario for a budget of env steps, evaluating on the way; a normal run "
+                    "folder whose eval_metrics.json is the adaptation curve.")
+    ad.add_argument("checkpoint", help="a checkpoint, trial or run folder (newest checkpoint)")
+    ad.add_argument("--budget", type=int, default=None,
+                    help="adaptation env steps (default: the preset's budget)")
+    _add_run_args(ad, "poca_SCENARIO_PRESET_sSEED")
+    add_env_args(ad)
+    ad.set_defaults(func=commands.adapt_cmd, total_env_steps=None)
+
+    ab = sub.add_parser(
+        "ablate", formatter_class=fmt, help="ablation studies (Tune + Optuna)",
+        description="Run one of the paper's ablations as a Ray Tune study searched by "
+                    "Optuna, every trial a real training run with evaluation and "
+                    "checkpoints: " + "; ".join(f"{s.name} ({s.summary})"
+                                                for s in STUDIES.values())
+                    + ". Studies with conditions run the full grid x seeds. The Optuna "
+                    "study is stored in SQLite in the study folder; --resume continues an "
+                    "interrupted study.")
+    ab.add_argument("study", choices=tuple(STUDIES))
+    _add_run_args(ab, "ablate-STUDY-PRESET")
+    ab.add_argument("--seeds", type=int, default=3, help="seeds per condition (grid studies)")
+    ab.add_argument("--trials", type=int, default=8,
+                    help="trials of a search study (hpo); grid studies run condition x seed")
+    ab.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
+    add_env_args(ab)
+    ab.set_defaults(func=commands.ablate_cmd)
+
+    rl = sub.add_parser(
+        "replay", formatter_class=fmt, help="interactive 3D HTML replay of an episode",
+        description="Play one evaluation episode with a run's team (sampled actions, as "
+                    "evaluation does) or, without RUN_DIR, the scripted greedy team, and "
+                    "write a self-contained plotly HTML: cells turning from green to blue "
+                    "as they are scanned, robot paths, a slider and a play button.")
+    rl.add_argument("run", nargs="?", default=None,
+                    help="a run, trial or checkpoint folder (default: the greedy team)")
+    rl.add_argument("--out", default="replay.html", help="output .html")
+    rl.add_argument("--every", type=int, default=5, help="one frame every N env steps")
+    rl.add_argument("--seed", type=int, default=0, help="reset seed")
+    add_env_args(rl)
+    rl.set_defaults(func=commands.replay_cmd)
+
+    rp = sub.add_parser(
+        "report", formatter_class=fmt, help="Markdown + HTML report of a results folder",
+        description="Read every run, ablation study and meta-MRSS experiment under "
+                    "RESULTS_DIR (finished or not) and write report.md, a self-contained "
+                    "report.html, figures/*.png and marl_eval.json (marl-eval's layout) to "
+                    "OUT (default RESULTS_DIR/report).")
+    rp.add_argument("results_dir")
+    rp.add_argument("--out", default=None, help="output folder (default RESULTS_DIR/report)")
+    rp.add_argument("--no-reference", action="store_true",
+                    help="skip the scripted greedy team's reference line")
+    rp.set_defaults(func=commands.report_cmd)
+
+    ex = sub.add_parser("experiment", formatter_class=fmt, help="multi-run protocols",
+                        description="Protocols made of many runs.")
+    ex_sub = ex.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
+    mm = ex_sub.add_parser(
+        "meta-mrss", formatter_class=fmt, help="meta-MRSS vs its baselines on test scenes",
+        description="Pre-train meta-MRSS, domain randomisation and transfer learning, then "
+                    "adapt each (and standard POCA from scratch) on every held-out test "
+                    "scenario with the same budget, for each seed; print method x (final "
+                    "coverage, env steps to 80 %, success) with the paper's figures. "
+                    "Independent runs go in parallel (--jobs; the default fills the Ray "
+                    "cluster's CPUs). Re-running resumes: finished runs are skipped, "
+                    "interrupted ones continue from their last checkpoint.")
+    mm.add_argument("--preset", choices=tuple(PROTOCOLS), default="quick",
+                    help="env steps of pre-training + adaptation per run: " + ", ".join(
+                        f"{name} {p.pretrain_steps:,} + {p.adapt_steps:,}"
+                        for name, p in PROTOCOLS.items()))
+    mm.add_argument("--seeds", type=int, default=3, help="seeds per method and test scene")
+    mm.add_argument("--tests", default="0,1,2,3,4", help="test scenario indices (0-4)")
+    mm.add_argument("--methods", default="meta-mrss,dr,transfer,poca",
+                    help="comma-separated subset of meta-mrss,dr,transfer,poca")
+    mm.add_argument("--pretrain-steps", type=int, default=None, help="override the preset")
+    mm.add_argument("--adapt-steps", type=int, default=None, help="override the preset")
+    mm.add_argument("--jobs", type=int, default=None,
+                    help="runs at once (default: as many as the Ray cluster's CPUs hold)")
+    mm.add_argument("--address", default=None, help="Ray cluster address (default: local)")
+    mm.add_argument("--results", default="results")
+    mm.add_argument("--name", default="meta-mrss")
+    mm.set_defaults(func=commands.experiment_cmd)
+
+    ev = sub.add_parser(
+        "evaluate", formatter_class=fmt, help="metrics of a trained team",
+        description="Play episodes with a checkpoint's policies (sampled actions) on its run's "
+                    "env config, or on the scenario/team given here, and print coverage, "
+                    "success, steps to 50/80/95 %, collisions and returns per kind, beside "
+                    "the scripted greedy team.")
+    ev.add_argument("checkpoint", help="a checkpoint, trial or run folder (newest checkpoint)")
+    ev.add_argument("--best", action="store_true",
+                    help="use the run's best kept checkpoint (by its training-time evaluation) "
+                         f"and record the result in {BEST_EVAL_FILE} in the run folder, where "
+                         "`rl-scan report` shows it as a secondary, selection-biased number")
+    ev.add_argument("--episodes", type=int, default=10)
+    ev.add_argument("--seed", type=int, default=0, help="reset seed of the first episode")
+    ev.add_argument("--deterministic", action="store_true",
+                    help="act with the policy mean instead of sampling (training evaluates "
+                         "sampled actions, as ML-Agents does)")
+    ev.add_argument("--no-reference", action="store_true", help="skip the greedy team")
+    ev.add_argument("--json", default=None, help="also write per-episode metrics here")
+    add_env_args(ev)
+    ev.set_defaults(func=commands.evaluate_cmd)
+
+    render = sub.add_parser("render", formatter_class=fmt, help="PNG/GIF of an episode",
+                            description="Play one episode with a checkpoint's team (if given) "
+                                        "or a scripted team and write a GIF (every N-th step) "
+                                        "or a PNG of the last frame.")
+    render.add_argument("checkpoint", nargs="?", default=None,
+                        help="a checkpoint, trial or run folder (default: a scripted team)")
+    render.add_argument("--policy", choices=("greedy", "random"), default="greedy",
+                        help="scripted team to play (default greedy)")
+    render.add_argument("--out", default="render.gif", help="output .gif or .png")
+    render.add_argument("--every", type=int, default=5, help="keep every N-th step in a GIF")
+    render.add_argument("--fps", type=int, default=10, help="GIF frames per second")
+    render.add_argument("--seed", type=int, default=0, help="reset seed")
+    add_env_args(render)
+    render.set_defaults(func=commands.render_cmd)
+    return parser

@@ -1,0 +1,284 @@
+"""``rl-scan report RESULTS_DIR``: Markdown + self-contained HTML report with PNG figures.
+
+Per group of runs (an ablation study, a meta-MRSS experiment, loose training runs):
+  * learning curves: evaluation coverage over env steps, mean +- std over seeds and a 95 %
+    CI band (mean +- 1.96 standard errors), the scripted greedy team as a reference line;
+  * a table per condition: runs, final coverage mean +- std, IQM with a stratified
+    bootstrap 95 % CI, success rate with a Wilson 95 % CI over evaluation episodes, and
+    the convergence verdict by the rule stated in the report (``CONVERGED``);
+  * probability of improvement for the paper's comparisons (POCA vs PPO, hetero vs homo,
+    meta-MRSS vs each baseline);
+  * compute: env steps/s end to end and wall time per run, hardware, package versions.
+Headline scores are final-checkpoint scores (the last evaluation of each run). Runs still
+going are reported as far as they got, and missing runs are listed. Raw per-run metrics
+are exported in marl-eval's JSON layout (``marl_eval.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rl_scan.reports.collect import Collection, RunRecord, collect
+from rl_scan.reports.figures import CONVERGED, plot_curves
+from rl_scan.reports.html import to_html
+from rl_scan.reports.stats import (
+    iqm,
+    mean_std,
+    probability_of_improvement,
+    probability_of_improvement_ci,
+    stratified_bootstrap_ci,
+    wilson_interval,
+)
+from rl_scan.results import EPISODE_RETURN, read_json
+from rl_scan.studies import ReportSpec
+
+RULE = (f"A condition **converged** if the mean over seeds of its final evaluation coverage "
+        f"is at least {CONVERGED:.0%}; otherwise it **failed**.")
+SPEED_AT = 0.80
+SPEED = (f"**Learning / adaptation speed** is defined up front as the env steps of a run's "
+         f"first evaluation whose mean coverage reaches {SPEED_AT:.0%}; a condition reports the "
+         "mean over the runs that reached it and how many did.")
+DIFFERENCES = (
+    "Differences from the paper's set-up: our simulator is a voxel re-implementation of "
+    "their Unity scenes (same sensor encoding, robot kinds and reward terms, arena "
+    "20 x 20 x 8 m, 0.5 m cells), budgets are those of the preset named in each section "
+    "(the paper trained for 8-14 M env steps), and every figure here comes from runs on "
+    "this machine.")
+
+
+def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
+    """One row of statistics per condition (final-checkpoint scores over seeds)."""
+    by_cond: dict[str, list[RunRecord]] = defaultdict(list)
+    for r in runs:
+        by_cond[r.condition].append(r)
+    rows = []
+    for cond, rs in sorted(by_cond.items()):
+        scored = [r for r in rs if r.evals]
+        finals = [r.final_coverage for r in scored]
+        # strata = tasks: the scenario each run was evaluated on
+        strata: dict[str, list[float]] = defaultdict(list)
+        for r in scored:
+            strata[r.scenario].append(r.final_coverage)
+        episodes = sum(r.eval_episodes for r in scored)
+        successes = sum(r.final_success * r.eval_episodes for r in scored
+                        if not math.isnan(r.final_success))
+        mean, std = mean_std(finals)
+        speeds = [r.steps_to(SPEED_AT) for r in scored]
+        reached = [x for x in speeds if not math.isnan(x)]
+        rows.append({
+            "condition": cond, "runs": len(rs), "scored": len(scored),
+            "final_mean": mean, "final_std": std, "iqm": iqm(finals) if finals else math.nan,
+            "iqm_ci": stratified_bootstrap_ci(list(strata.values())),
+            "success": successes / episodes if episodes else math.nan,
+            "success_ci": wilson_interval(successes, episodes), "episodes": episodes,
+            "converged": (not math.isnan(mean)) and mean >= CONVERGED,
+            "speed": float(np.mean(reached)) if reached else math.nan,
+            "speed_reached": len(reached), "finals": finals})
+    return rows
+
+
+def improvement_rows(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    finals = {r["condition"]: r["finals"] for r in rows}
+    out = []
+    for a, b in spec.comparisons:
+        if finals.get(a) and finals.get(b):
+            out.append({"x": a, "y": b, "p": probability_of_improvement(finals[a], finals[b]),
+                        "ci": probability_of_improvement_ci(finals[a], finals[b])})
+    return out
+
+
+def greedy_reference(scenario: str, episodes: int = 3) -> float:
+    """Mean final coverage of the scripted greedy team on a scenario (nan if unknown)."""
+    try:
+        from rl_scan.envs.core import ScanCore
+        from rl_scan.envs.episode import run_episode
+        from rl_scan.envs.heuristics import GreedyTeam
+
+        core = ScanCore({"scenario": scenario})
+        return float(np.mean([run_episode(core, GreedyTeam(core), seed=s)["coverage"]
+                              for s in range(episodes)]))
+    except Exception:  # noqa: BLE001 - a reference line is optional
+        return math.nan
+
+
+def _fmt(x: float, pct: bool = True) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "-"
+    return f"{100 * x:.1f}" if pct else f"{x:,.0f}"
+
+
+def _table(rows: list[dict[str, Any]], spec: ReportSpec) -> list[str]:
+    head = ["condition", "runs", "final coverage % (mean ± std)", "IQM % [95 % CI]",
+            "success % [95 % CI] (episodes)", f"env steps to {SPEED_AT:.0%} (reached)",
+            "verdict"]
+    if spec.paper_column:
+        head.append(spec.paper_column)
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        lo, hi = r["iqm_ci"]
+        slo, shi = r["success_ci"]
+        cells = [r["condition"], f"{r['scored']}/{r['runs']}",
+                 f"{_fmt(r['final_mean'])} ± {_fmt(r['final_std'])}",
+                 f"{_fmt(r['iqm'])} [{_fmt(lo)}, {_fmt(hi)}]",
+                 f"{_fmt(r['success'])} [{_fmt(slo)}, {_fmt(shi)}] ({r['episodes']})",
+                 f"{_fmt(r['speed'], False)} ({r['speed_reached']}/{r['scored']})",
+                 "converged" if r["converged"] else "failed"]
+        if spec.paper_column:
+            cells.append(spec.paper.get(r["condition"], "(not in the paper)"))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def best_checkpoint_table(runs: list[RunRecord]) -> list[str]:
+    """Secondary numbers: each run's best kept checkpoint re-evaluated (evaluate --best)."""
+    rows = [r for r in runs if r.best_eval]
+    if not rows:
+        return []
+    lines = ["", "Secondary (not the headline): each run's best kept checkpoint, chosen by its "
+             "training-time evaluation and re-evaluated on more episodes with "
+             "`rl-scan evaluate RUN --best`. Choosing the best is biased upwards; the "
+             "headline above uses final checkpoints.", "",
+             "| run | condition | checkpoint at env steps | training-time eval % | "
+             "re-evaluated coverage % (mean ± std) | success % [95 % CI] (episodes) |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        b = r.best_eval
+        cov, succ = b.get("coverage", []), b.get("success", [])
+        mean, std = mean_std(cov)
+        wins = int(sum(succ))
+        lo, hi = wilson_interval(wins, len(succ))
+        lines.append(f"| {r.path.name} | {r.condition} | {int(b.get('env_steps', 0)):,} | "
+                     f"{_fmt(b.get('eval_coverage', math.nan))} | {_fmt(mean)} ± {_fmt(std)} | "
+                     f"{_fmt(wins / len(succ) if succ else math.nan)} [{_fmt(lo)}, {_fmt(hi)}] "
+                     f"({len(succ)}) |")
+    return lines
+
+
+def marl_eval_json(runs: list[RunRecord]) -> dict[str, Any]:
+    """marl-eval's layout: env -> task -> algorithm -> run -> step_k / absolute_metrics."""
+    out: dict[str, Any] = {"rl-scan": {}}
+    counters: dict[tuple, int] = defaultdict(int)
+    for r in runs:
+        task = r.scenario or "unknown"
+        algo = f"{r.group}:{r.condition}"
+        key = (task, algo)
+        run_id = f"run_{counters[key]}"
+        counters[key] += 1
+        steps = {f"step_{i}": {"step_count": int(e["env_steps"]),
+                               "coverage": [float(e["coverage"])],
+                               "return": [float(e.get(EPISODE_RETURN) or math.nan)]}
+                 for i, e in enumerate(r.evals)}
+        if r.evals:
+            steps["absolute_metrics"] = {"coverage": [r.final_coverage],
+                                         "success": [r.final_success]}
+        out["rl-scan"].setdefault(task, {}).setdefault(algo, {})[run_id] = steps
+    return out
+
+
+def bench_lines(results_dir: Path) -> list[str]:
+    """Figures of any ``rl-scan bench env|train --json`` files in the results folder."""
+    lines = []
+    for path in sorted(results_dir.glob("**/bench*.json")):
+        data = read_json(path)
+        if not isinstance(data, dict):
+            continue
+        load = data.get("load_avg_1m", math.nan)
+        if "core_steps_per_s" in data:
+            lines += [f"| env only, `{path.name}` (load {load:.2f}) | core "
+                      f"{data['core_steps_per_s']:,.0f}, RLlib env "
+                      f"{data.get('rllib_steps_per_s', math.nan):,.0f}, PettingZoo "
+                      f"{data.get('pettingzoo_steps_per_s', math.nan):,.0f} env steps/s "
+                      "(one core, random actions) |"]
+        for label, run in (data.get("runs") or {}).items():
+            lines += [f"| training end to end, `{path.name}` (load {load:.2f}) | {label}: "
+                      f"{run.get('env_steps_per_s', math.nan):,.0f} env steps/s, peak RSS "
+                      f"{run.get('peak_rss_mb', math.nan):,.0f} MB |"]
+    return (["", "| benchmark | figures |", "|---|---|", *lines, ""] if lines else [])
+
+
+def hardware() -> dict[str, str]:
+    cpu = "unknown"
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in
+                   Path("/proc/cpuinfo").read_text().splitlines()
+                   if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    import ray
+    import torch
+
+    import rl_scan
+
+    return {"cpu": cpu, "cores": str(os.cpu_count()), "python": platform.python_version(),
+            "rl_scan": rl_scan.__version__, "ray": ray.__version__, "torch": torch.__version__}
+
+
+def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
+                 reference: bool = True) -> Path:
+    """Write report.md, report.html, figures/*.png and marl_eval.json; returns out_dir."""
+    results_dir = Path(results_dir).resolve()
+    if not results_dir.is_dir():
+        raise ValueError(f"results_dir={str(results_dir)!r} is not a folder")
+    out = Path(out_dir).resolve() if out_dir else results_dir / "report"
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    data: Collection = collect(results_dir)
+    if not data.runs:
+        raise ValueError(f"results_dir={str(results_dir)!r} holds no rl-scan runs or studies")
+    md = [f"# rl-scan report: {results_dir.name}", "",
+          f"{len(data.runs)} runs read from `{results_dir}`. Scores are final-checkpoint "
+          "scores (each run's last evaluation); bands are ± 1 std (light) and a 95 % CI of "
+          "the mean (dark) over seeds. " + RULE, "", SPEED, "", DIFFERENCES, ""]
+    groups: dict[str, list[RunRecord]] = defaultdict(list)
+    for r in data.runs:
+        groups[r.group].append(r)
+    figures = []
+    for group, runs in sorted(groups.items()):
+        spec = data.reports.get(group, ReportSpec())
+        md += [f"## {group}", ""]
+        planned = data.planned.get(group)
+        missing = [r for r in runs if not r.evals]
+        if planned and len(runs) < planned:
+            md.append(f"**Partial:** {len(runs)} of {planned} planned runs have started.")
+        if missing:
+            md.append(f"**Missing evaluations:** {len(missing)} run(s) have none yet: "
+                      + ", ".join(f"`{r.path.name}`" for r in missing[:10]))
+        scenarios = sorted({r.scenario for r in runs if r.scenario})
+        ref = (greedy_reference(scenarios[0]) if reference and len(scenarios) == 1
+               else None)
+        fig = plot_curves(runs, group, out / "figures" / f"{group.replace('/', '_')}.png", ref)
+        figures.append(fig)
+        md += ["", f"![{group}](figures/{fig.name})", ""]
+        rows = condition_rows(runs)
+        md += _table(rows, spec)
+        md += best_checkpoint_table(runs)
+        if ref is not None and not math.isnan(ref):
+            md += ["", f"Scripted greedy team on {scenarios[0]}: {100 * ref:.1f} % coverage."]
+        imp = improvement_rows(spec, rows)
+        if imp:
+            md += ["", "| probability of improvement | P(X > Y) [95 % CI] |", "|---|---|"]
+            md += [f"| {i['x']} > {i['y']} | {i['p']:.2f} [{i['ci'][0]:.2f}, {i['ci'][1]:.2f}] |"
+                   for i in imp]
+        md += ["", "| run | env steps | wall time | env steps/s (end to end) |",
+               "|---|---|---|---|"]
+        md += [f"| {r.path.name} | {r.env_steps:,} | {_fmt(r.time_total_s, False)} s | "
+               f"{_fmt(r.env_steps_per_s, False)} |" for r in runs]
+        md.append("")
+    hw = hardware()
+    md += ["## Compute", "", "| item | value |", "|---|---|"]
+    md += [f"| {k} | {v} |" for k, v in hw.items()]
+    bench = bench_lines(results_dir)
+    md += bench or ["", "No benchmark JSON under the results folder: env-only speed comes from "
+                    "`rl-scan bench env --json F`, end-to-end training speed from "
+                    "`rl-scan bench train --json F` (put F in the results folder).", ""]
+    (out / "report.md").write_text("\n".join(md))
+    (out / "marl_eval.json").write_text(json.dumps(marl_eval_json(data.runs), default=float))
+    (out / "report.html").write_text(to_html("\n".join(md), out))
+    return out

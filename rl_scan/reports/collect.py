@@ -1,0 +1,126 @@
+"""Read every run under a folder into ``RunRecord``s, grouped as the report shows them.
+
+A run is any run folder of ``rl_scan.results`` (it has a RUN_FILE), and its group is
+where it sits: the trials of one ablation study, one kind of run of a meta-MRSS
+experiment (pre-training or adaptation), or loose training runs ("runs"). Each group
+gets the ``ReportSpec`` of the study registry (comparisons, the paper's column). Runs
+still going (or killed) are read as far as they got; ``planned`` says what a study or
+experiment meant to run so a report can say what is missing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rl_scan import results as R
+from rl_scan.studies import META_MRSS_REPORT, STUDIES, ReportSpec
+
+LOOSE = "runs"  # the group of training runs that belong to no study or experiment
+
+
+@dataclass
+class RunRecord:
+    """One training run (one seed of one condition) and its evaluation curve."""
+
+    group: str  # what it belongs to: "ablate-comm-quick", "meta-mrss/adapt", "runs", ...
+    condition: str  # e.g. "3", "poca", "meta-mrss", "poca on ablation"
+    seed: int
+    path: Path
+    evals: list[dict[str, Any]] = field(default_factory=list)  # EVAL_FILE entries
+    eval_episodes: int = 0  # evaluation episodes behind each entry
+    env_steps: int = 0
+    time_total_s: float = math.nan
+    scenario: str = ""
+    algo: str = ""
+    best_eval: dict[str, Any] | None = None  # BEST_EVAL_FILE (evaluate --best)
+
+    @property
+    def curve(self) -> list[tuple[int, float]]:
+        return [(int(e["env_steps"]), float(e["coverage"])) for e in self.evals]
+
+    @property
+    def final_coverage(self) -> float:
+        return float(self.evals[-1]["coverage"]) if self.evals else math.nan
+
+    @property
+    def final_success(self) -> float:
+        return float(self.evals[-1].get("success", math.nan)) if self.evals else math.nan
+
+    def steps_to(self, coverage: float) -> float:
+        """Env steps of the first evaluation whose mean coverage reached ``coverage``
+        (NaN if none did): the report's learning / adaptation speed."""
+        return next((float(s) for s, c in self.curve if c >= coverage), math.nan)
+
+    @property
+    def env_steps_per_s(self) -> float:
+        return self.env_steps / self.time_total_s if self.time_total_s else math.nan
+
+
+@dataclass
+class Collection:
+    runs: list[RunRecord] = field(default_factory=list)
+    planned: dict[str, int] = field(default_factory=dict)  # group -> runs it meant to have
+    reports: dict[str, ReportSpec] = field(default_factory=dict)  # group -> what to compare
+
+
+def read_run(folder: Path, group: str, condition: str) -> RunRecord:
+    meta = R.read_yaml(folder / R.RUN_FILE) or {}
+    steps, seconds = R.progress_tail(R.tune_trial_dir(folder))
+    return RunRecord(group=group, condition=condition, seed=int(meta.get("seed", 0)),
+                     path=folder, evals=R.read_evals(folder),
+                     eval_episodes=int((meta.get("preset_config") or {}).get(
+                         "evaluation_episodes", 0)),
+                     env_steps=steps, time_total_s=seconds,
+                     scenario=(meta.get("env_config") or {}).get("scenario", ""),
+                     algo=meta.get("algo", ""),
+                     best_eval=R.read_json(folder / R.BEST_EVAL_FILE))
+
+
+def trial_condition(params: dict[str, Any]) -> str:
+    """A study trial's condition label: its condition, or its searched values."""
+    if "condition" in params:
+        return str(params["condition"])
+    return ", ".join(f"{k}={_short(v)}" for k, v in sorted(params.items()) if k != "seed")
+
+
+def _short(v: Any) -> str:
+    return f"{v:.3g}" if isinstance(v, float) else str(v)
+
+
+def _place(folder: Path, meta: dict[str, Any], out: Collection) -> tuple[str, str]:
+    """(group, condition) of a run folder; records the group's plan and report spec."""
+    parent, top = folder.parent, folder.parent.parent
+    if parent.name == R.TRIALS_DIR and (top / R.STUDY_FILE).is_file():
+        study = R.read_yaml(top / R.STUDY_FILE) or {}
+        out.planned[top.name] = int(study.get("trials", 0))
+        known = STUDIES.get(study.get("study", ""))
+        out.reports[top.name] = known.report if known else ReportSpec()
+        return top.name, trial_condition(meta.get("params") or {})
+    if parent.name in (R.PRETRAIN_DIR, R.ADAPT_DIR):  # a meta-MRSS experiment
+        group = f"{top.name}/{parent.name}"
+        plan = R.read_yaml(top / R.PROTOCOL_FILE) or {}
+        planned = (plan.get("planned_runs") or {}).get(parent.name)
+        if planned:
+            out.planned[group] = int(planned)
+        out.reports[group] = META_MRSS_REPORT if parent.name == R.ADAPT_DIR else ReportSpec()
+        return group, folder.name.split("_")[0]  # the method
+    return LOOSE, f"{meta.get('algo', '?')} on {(meta.get('env_config') or {}).get('scenario')}"
+
+
+def collect(root: str | Path) -> Collection:
+    """Every run under ``root`` (``root`` itself may be one)."""
+    root = Path(root).resolve()
+    out = Collection()
+    for run_file in sorted(root.glob(f"**/{R.RUN_FILE}")):
+        folder = run_file.parent
+        group, condition = _place(folder, R.read_yaml(run_file) or {}, out)
+        out.runs.append(read_run(folder, group, condition))
+    conditions = {r.condition for r in out.runs if r.group == LOOSE}
+    if conditions:  # loose runs: POCA vs PPO on each scenario both ran on
+        out.reports[LOOSE] = ReportSpec(comparisons=tuple(
+            (c, "ppo" + c[len("poca"):]) for c in sorted(conditions)
+            if c.startswith("poca on ") and "ppo" + c[len("poca"):] in conditions))
+    return out

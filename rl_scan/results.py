@@ -1,0 +1,171 @@
+"""The results format, in one place: folder layouts, file names, result keys, readers/writers.
+
+Every rl-scan command writes under a results folder, and ``rl-scan report`` reads it back:
+
+  run folder          RUN_FILE (what ran: algorithm, preset, env config, seed, commit),
+                      EVAL_FILE (one entry per training-time evaluation), BEST_EVAL_FILE
+                      (``evaluate --best``), DONE (a finished run of an experiment), and
+                      TUNE_DIR/trial/ (Tune: progress.csv, result.json, checkpoints).
+  study folder        STUDY_FILE, OPTUNA_DB, TRIALS_DIR/<trial id>/ (one run folder per
+                      trial) and TUNE_DIR/<trial id>/ (Tune's) (``rl-scan ablate``).
+  experiment folder   PROTOCOL_FILE, PRETRAIN_DIR/<run>/, ADAPT_DIR/<run>/, LOG_DIR/,
+                      SUMMARY_FILE, TABLE_FILE (``rl-scan experiment meta-mrss``).
+
+Our own files live beside Tune's folder, never in it: when an experiment is restored, Tune
+copies every JSON file under its folder to a staging copy and later syncs that copy back,
+which would overwrite evaluations written since. This module imports no Ray (reports
+and the command line read results without starting it).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+RUN_FILE = "run.yaml"
+EVAL_FILE = "eval_metrics.json"  # every training-time evaluation
+BEST_EVAL_FILE = "best_checkpoint_eval.json"  # the best kept checkpoint, re-evaluated
+TUNE_DIR = "tune"
+TRIALS_DIR = "trials"  # a study's run folders, one per trial, named by Tune's trial id
+TRAIN_TRIAL = "trial"  # the Tune trial folder of a single run: RUN/TUNE_DIR/TRAIN_TRIAL
+PROGRESS_FILE = "progress.csv"  # Tune's, one row per iteration
+STUDY_FILE = "study.yaml"
+OPTUNA_DB = "optuna.db"
+PROTOCOL_FILE = "protocol.yaml"  # a meta-MRSS experiment's plan (methods, tests, seeds, runs)
+PRETRAIN_DIR, ADAPT_DIR = "pretrain", "adapt"
+SUMMARY_FILE, TABLE_FILE = "summary.json", "table.md"
+DONE = "DONE"  # a finished run of an experiment (skipped when the experiment is re-run)
+LOG_DIR = "logs"  # stderr of every experiment run started in a child process
+
+# Keys of RLlib's training results (``Algorithm.train()``) that rl-scan reads.
+ENV_STEPS = "num_env_steps_sampled_lifetime"  # == ray.rllib.utils.metrics' constant (tested)
+ITERATION = "training_iteration"
+TIME_TOTAL = "time_total_s"
+EVALUATION = "evaluation"
+ENV_RUNNERS = "env_runners"
+EPISODE_RETURN = "episode_return_mean"
+MODULE_RETURNS = "module_episode_returns_mean"
+
+# Keys rl-scan adds to the results.
+SCAN_PREFIX = "scan/"  # episode metrics (rl_scan.metrics names) logged by the callback
+EVAL_SCORE = "eval_coverage"  # the latest evaluation's mean coverage (checkpoint score)
+EVALUATED = "evaluated"  # True in the results of an iteration that ran an evaluation
+META_BEFORE = "meta/coverage_before_adaptation"  # MetaPOCA: support episodes' coverage
+META_AFTER = "meta/coverage_after_adaptation"  # MetaPOCA: query episodes' coverage
+
+
+def scan_key(metric: str) -> str:
+    """The result key of an episode metric: 'coverage' -> 'scan/coverage'."""
+    return SCAN_PREFIX + metric
+
+
+def evaluation_of(result: dict[str, Any]) -> dict[str, Any]:
+    """The env-runner metrics of a result's evaluation ({} if it has none)."""
+    return result.get(EVALUATION, {}).get(ENV_RUNNERS, {})
+
+
+def eval_entry(result: dict[str, Any]) -> dict[str, Any]:
+    """One EVAL_FILE entry from a result whose iteration ran an evaluation."""
+    evaluation = evaluation_of(result)
+    return {
+        ITERATION: result.get(ITERATION, 0),
+        "env_steps": result.get(ENV_STEPS),
+        TIME_TOTAL: result.get(TIME_TOTAL),
+        EPISODE_RETURN: evaluation.get(EPISODE_RETURN),
+        "module_returns": evaluation.get(MODULE_RETURNS, {}),
+        **{k[len(SCAN_PREFIX):]: v for k, v in evaluation.items() if k.startswith(SCAN_PREFIX)},
+    }
+
+
+def append_eval(folder: Path, entry: dict[str, Any]) -> None:
+    """Append an evaluation entry to a run folder's EVAL_FILE.
+
+    After a restore, iterations past the checkpoint run again: their new entries win.
+    """
+    path = Path(folder) / EVAL_FILE
+    entries = read_json(path) or []
+    entries = [e for e in entries if e[ITERATION] < entry[ITERATION]]
+    write_json(path, [*entries, entry])
+
+
+def write_json(path: Path, data: Any) -> None:
+    """JSON with NaN and numpy numbers written as floats."""
+    Path(path).write_text(json.dumps(data, indent=1, default=float))
+
+
+def write_yaml(path: Path, data: dict[str, Any]) -> None:
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False))
+
+
+def read_yaml(path: Path) -> Any:
+    """A YAML file's content, or None if it is missing or malformed (a run still starting)."""
+    try:
+        return yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+
+
+def read_json(path: Path) -> Any:
+    """A JSON file's content, or None if it is missing or malformed."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def read_evals(folder: Path) -> list[dict[str, Any]]:
+    return read_json(Path(folder) / EVAL_FILE) or []
+
+
+def is_run_folder(folder: Path) -> bool:
+    return (Path(folder) / RUN_FILE).is_file()
+
+
+def trial_run_dir(study_dir: Path, trial_id: str) -> Path:
+    """The run folder of one study trial."""
+    return Path(study_dir) / TRIALS_DIR / trial_id
+
+
+def tune_trial_dir(run_dir: Path) -> Path:
+    """Tune's trial folder of a run folder (progress, checkpoints)."""
+    run_dir = Path(run_dir)
+    trial = (read_yaml(run_dir / RUN_FILE) or {}).get("tune_trial")
+    if trial:  # a study trial: STUDY/trials/<id> -> STUDY/tune/<id>
+        return run_dir.parent.parent / TUNE_DIR / trial
+    return run_dir / TUNE_DIR / TRAIN_TRIAL
+
+
+def run_dir_of(path: Path) -> Path | None:
+    """The run folder that ``path`` (a checkpoint, a Tune trial folder) belongs to."""
+    path = Path(path)
+    for parent in [path, *path.parents]:
+        if is_run_folder(parent):
+            return parent
+        if parent.parent.name == TUNE_DIR and (parent.parent.parent / STUDY_FILE).is_file():
+            folder = trial_run_dir(parent.parent.parent, parent.name)
+            return folder if is_run_folder(folder) else None
+    return None
+
+
+def run_meta_of(path: Path) -> dict[str, Any]:
+    """The RUN_FILE of the run that ``path`` belongs to, or {}."""
+    folder = run_dir_of(path)
+    return (read_yaml(folder / RUN_FILE) or {}) if folder else {}
+
+
+def progress_tail(folder: Path) -> tuple[int, float]:
+    """(env steps, wall seconds) of the last Tune progress row anywhere under ``folder``."""
+    rows: list[dict[str, str]] = []
+    for path in sorted(Path(folder).glob(f"**/{PROGRESS_FILE}")):
+        with open(path) as f:
+            rows += list(csv.DictReader(f))
+    if not rows:
+        return 0, math.nan
+    last = max(rows, key=lambda r: float(r.get(ENV_STEPS) or 0))
+    return int(float(last.get(ENV_STEPS) or 0)), float(last.get(TIME_TOTAL) or math.nan)
+

@@ -1,0 +1,1 @@
+"""Experiments: Tune runs (``launch``), ablation studies (``ablate``), the meta-MRSS protocol."""

@@ -1,0 +1,111 @@
+"""``rl-scan ablate``: the studies of ``rl_scan.studies`` as Ray Tune studies searched by Optuna.
+
+Each trial is a run of the one run driver (``driver.train_run``) with evaluation and
+checkpoints. Grid studies run the full grid of condition x seed (Optuna's
+``GridSampler``); search studies sample with TPE. The study folder (layout in
+``rl_scan.results``) holds the Optuna study in SQLite
+(``optuna-dashboard sqlite:///RESULTS/NAME/optuna.db``). ``resume=True`` continues an
+interrupted study: finished trials are kept, unfinished ones continue from their last
+checkpoint.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from rl_scan import results as R
+from rl_scan.config import check_range, fail
+from rl_scan.studies import Study, get_study
+from rl_scan.tuning.driver import (
+    RunProgress,
+    checkpoint_config,
+    git_commit,
+    make_run_spec,
+    required_cpus,
+    train_run,
+)
+from rl_scan.tuning.launch import check_output_folder, check_resources, init_ray
+
+
+def search_space(study: Study, seeds: int):
+    """Optuna distributions and sampler of a study, and its trial count for a grid."""
+    import optuna
+    from optuna.distributions import CategoricalDistribution
+
+    if study.is_grid:
+        grid = {"condition": list(study.conditions), "seed": list(range(seeds))}
+        space = {k: CategoricalDistribution(v) for k, v in grid.items()}
+        return space, optuna.samplers.GridSampler(grid, seed=0), len(study.conditions) * seeds
+    space = {**study.space(), "seed": CategoricalDistribution([0])}
+    return space, optuna.samplers.TPESampler(seed=0), None
+
+
+def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trials: int = 8,
+           results_dir: str | Path = "results", name: str | None = None,
+           address: str | None = None, resume: bool = False,
+           env_config: dict[str, Any] | None = None,
+           preset_overrides: dict[str, Any] | None = None, console=None) -> Path:
+    """Run (or resume) one ablation study; returns its folder."""
+    from rich.console import Console
+
+    console = console or Console()
+    study = get_study(study_name)
+    check_range("seeds", seeds, 1, 100)
+    check_range("trials", trials, 1, 10_000)
+    base = make_run_spec("poca", env_config, preset_name, preset_overrides=preset_overrides)
+    preset = base.preset
+    if preset.evaluation_interval < 1:  # the study's metric is the last evaluation
+        fail("evaluation_interval", preset.evaluation_interval, "at least 1 in a study")
+    name = name or f"ablate-{study.name}-{preset_name}"
+    folder = Path(results_dir).resolve() / name
+    check_output_folder(folder, R.STUDY_FILE, "study", resume)
+    space, sampler, grid_size = search_space(study, seeds)
+    for params in study.example_params():  # every condition builds before Ray starts
+        base.for_trial(study.name, params).algorithm_config()
+    cpus = init_ray(address)
+    check_resources(preset, cpus)
+
+    import optuna
+    from ray import tune
+    from ray.tune.search.optuna import OptunaSearch
+
+    num_samples = grid_size or trials
+    if not resume:
+        folder.mkdir(parents=True)
+        R.write_yaml(folder / R.STUDY_FILE, {
+            "study": study.name, "preset": preset_name, "seeds": seeds, "trials": num_samples,
+            "evaluation_episodes": preset.evaluation_episodes,
+            "env_config": dict(env_config or {}), "preset_overrides": preset_overrides or {},
+            "git_commit": git_commit(), "started": time.strftime("%Y-%m-%d %H:%M:%S")})
+    trainable = tune.with_resources(
+        tune.with_parameters(train_run, spec=base, study=study.name),
+        {"cpu": required_cpus(preset)})
+    concurrent = max(1, int(cpus) // required_cpus(preset))
+    console.print(f"[bold]ablate {study.name}[/]: {num_samples} trials of {preset_name} "
+                  f"({preset.total_env_steps:,} env steps each), {concurrent} at a time "
+                  f"-> {folder}")
+    if resume and (folder / R.TUNE_DIR).is_dir():
+        tuner = tune.Tuner.restore(str(folder / R.TUNE_DIR), trainable=trainable,
+                                   resume_errored=True, resume_unfinished=True)
+    else:
+        storage = optuna.storages.RDBStorage(f"sqlite:///{folder / R.OPTUNA_DB}")
+        searcher = OptunaSearch(space=space, metric=R.EVAL_SCORE, mode="max",
+                                sampler=sampler, study_name=name, storage=storage)
+        progress = RunProgress(preset.total_env_steps, study_dir=folder, spec=base,
+                               study=study.name, trials=num_samples)
+        tuner = tune.Tuner(
+            trainable,
+            tune_config=tune.TuneConfig(search_alg=searcher, num_samples=num_samples,
+                                        max_concurrent_trials=concurrent,
+                                        trial_dirname_creator=lambda t: t.trial_id),
+            run_config=tune.RunConfig(
+                storage_path=str(folder), name=R.TUNE_DIR, verbose=0,
+                failure_config=tune.FailureConfig(max_failures=2),
+                checkpoint_config=checkpoint_config(preset), callbacks=[progress]))
+    grid = tuner.fit()
+    failed = [r for r in grid if r.error]
+    if failed:
+        console.print(f"[red]{len(failed)} trial(s) failed[/]: {failed[0].error}")
+    return folder

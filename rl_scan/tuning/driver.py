@@ -1,0 +1,234 @@
+"""The one run driver: every training run (``train``, ``meta-train``, ``adapt``, each
+ablation trial, each experiment run) is a ``RunSpec`` trained by ``train_run`` under Tune.
+
+``RunSpec``      what to train, validated once when it is made (typed EnvConfig, preset,
+                 the algorithm's own settings); ``metadata()`` is the run folder's RUN_FILE.
+``train_run``    the Tune function trainable: builds the algorithm, restores Tune's
+                 checkpoint, calls ``train()`` until the budget, checkpoints every
+                 ``checkpoint_frequency`` iterations and at the end, marks evaluations.
+``RunProgress``  the Tune callback on the driver: one line per iteration, and every
+                 evaluation appended to the run folder's EVAL_FILE (outside Tune's folder,
+                 which Tune re-syncs from a staging copy on restore).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ray.tune import Callback
+
+from rl_scan import results as R
+from rl_scan.algorithms.registry import get_algorithm, settings_kwargs
+from rl_scan.config import deep_merge, to_dict
+from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
+from rl_scan.studies import get_study
+from rl_scan.tuning.presets import TrainPreset, get_preset
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run, validated: what ``train_run`` builds and the run folder records."""
+
+    algo: str
+    env: EnvConfig
+    preset_name: str
+    preset: TrainPreset
+    seed: int = 0
+    settings: Any = None
+    """The algorithm's own settings (its registry entry), None if it has none."""
+    algo_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Builder keywords on top of the preset's (e.g. lr in a hyperparameter search)."""
+    init_from: str | None = None
+    """A checkpoint folder whose module weights the run starts from."""
+    study: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    """A study trial's parameters (condition or searched values, seed)."""
+
+    def algorithm_config(self):
+        """The RLlib AlgorithmConfig of this run, validated."""
+        entry = get_algorithm(self.algo)
+        p = self.preset
+        kwargs = dict(train_batch_size=p.train_batch_size, minibatch_size=p.minibatch_size,
+                      num_epochs=p.num_epochs, lr=p.lr, num_env_runners=p.num_env_runners,
+                      num_envs_per_env_runner=p.num_envs_per_env_runner,
+                      evaluation_interval=p.evaluation_interval,
+                      evaluation_episodes=p.evaluation_episodes, seed=self.seed,
+                      **settings_kwargs(self.settings), **self.algo_kwargs)
+        config = entry.load_builder()(self.env, **kwargs)
+        if self.init_from is not None:
+            from rl_scan.algorithms.init_weights import init_from_callback
+
+            config.callbacks(on_algorithm_init=init_from_callback(self.init_from))
+        config.validate()
+        return config
+
+    def for_trial(self, study: str, params: dict[str, Any]) -> RunSpec:
+        """This spec with a study trial's condition applied."""
+        run = get_study(study).run_of(params)
+        env = make_env_config(deep_merge(to_dict(self.env), run.env))
+        return dataclasses.replace(
+            self, algo=run.algo, env=env, seed=int(params.get("seed", 0)),
+            settings=get_algorithm(run.algo).make_settings(self.preset_name),
+            algo_kwargs={**self.algo_kwargs, **run.algo_kwargs}, study=study,
+            params=dict(params))
+
+    def metadata(self) -> dict[str, Any]:
+        """The run folder's RUN_FILE: what ran, from which code."""
+        return {"algo": self.algo, "preset": self.preset_name,
+                "preset_config": to_dict(self.preset), "seed": self.seed,
+                "algo_settings": to_dict(self.settings), "algo_kwargs": self.algo_kwargs,
+                "env_config": to_dict(self.env), "init_from": self.init_from,
+                "study": self.study, "params": self.params, "git_commit": git_commit(),
+                "versions": _versions(), "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+def make_run_spec(algo: str, env_config: dict[str, Any] | None = None,
+                  preset_name: str = "smoke", *, seed: int = 0,
+                  preset_overrides: dict[str, Any] | None = None,
+                  init_from: str | Path | None = None,
+                  algo_kwargs: dict[str, Any] | None = None) -> RunSpec:
+    """Validate a run's inputs once (the preset's env overrides under the user's)."""
+    entry = get_algorithm(algo)
+    preset = get_preset(preset_name, preset_overrides)
+    env = make_env_config(deep_merge(preset.env_overrides, dict(env_config or {})))
+    if init_from is not None:
+        from rl_scan.algorithms.rollout import resolve_checkpoint
+
+        init_from = str(resolve_checkpoint(init_from))
+    return RunSpec(algo, env, preset_name, preset, seed, entry.make_settings(preset_name),
+                   dict(algo_kwargs or {}), init_from)
+
+
+def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None) -> None:
+    """Tune function trainable: one run to its budget, resumable from Tune's checkpoint.
+
+    ``params`` are a study trial's parameters (``study`` names the study), else empty.
+    """
+    from ray import tune
+
+    if study is not None:
+        spec = spec.for_trial(study, params)
+    preset = spec.preset
+    algorithm = spec.algorithm_config().build_algo()
+    checkpoint = tune.get_checkpoint()
+    if checkpoint is not None:
+        with checkpoint.as_directory() as folder:
+            algorithm.restore_from_path(folder)
+    try:
+        while True:
+            result = algorithm.train()
+            it = result[R.ITERATION]
+            # RLlib repeats the last evaluation in later results: mark the fresh ones.
+            result[R.EVALUATED] = bool(preset.evaluation_interval and R.evaluation_of(result)
+                                       and it % preset.evaluation_interval == 0)
+            done = result[R.ENV_STEPS] >= preset.total_env_steps
+            if done or it % preset.checkpoint_frequency == 0:
+                with tempfile.TemporaryDirectory() as tmp:
+                    algorithm.save_to_path(tmp)
+                    tune.report(result, checkpoint=tune.Checkpoint.from_directory(tmp))
+            else:
+                tune.report(result)
+            if done:
+                return
+    finally:
+        algorithm.stop()
+
+
+def checkpoint_config(preset: TrainPreset):
+    """Keep the 3 best checkpoints by evaluation coverage, and always the latest (resume).
+
+    Without evaluation there is no score: the 3 latest are kept.
+    """
+    from ray import tune
+
+    scored = preset.evaluation_interval > 0
+    return tune.CheckpointConfig(num_to_keep=3,
+                                 checkpoint_score_attribute=R.EVAL_SCORE if scored else None,
+                                 checkpoint_score_order="max")
+
+
+def required_cpus(preset: TrainPreset) -> int:
+    """CPU bundles of one run: the training process plus one per env runner."""
+    return 1 + preset.num_env_runners
+
+
+class RunProgress(Callback):
+    """One line per iteration; evaluations appended to the run folder's EVAL_FILE.
+
+    ``run_dir`` is the run folder of a single run; for a study (``study_dir``) each trial
+    has its own run folder, ``trial_run_dir(study_dir, trial_id)``, made at its start.
+    """
+
+    def __init__(self, total_steps: int, run_dir: Path | None = None,
+                 study_dir: Path | None = None, spec: RunSpec | None = None,
+                 study: str | None = None, trials: int = 1) -> None:
+        self.total, self.run_dir, self.study_dir = total_steps, run_dir, study_dir
+        self.spec, self.study, self.trials, self.finished = spec, study, trials, 0
+
+    def _folder(self, trial) -> Path:
+        return self.run_dir or R.trial_run_dir(self.study_dir, trial.trial_id)
+
+    def on_trial_start(self, iteration, trials, trial, **info) -> None:
+        folder = self._folder(trial)
+        if self.study is not None and not R.is_run_folder(folder):
+            folder.mkdir(parents=True, exist_ok=True)
+            meta = self.spec.for_trial(self.study, trial.config).metadata()
+            R.write_yaml(folder / R.RUN_FILE, {**meta, "tune_trial": trial.trial_id})
+
+    def on_trial_result(self, iteration, trials, trial, result, **info) -> None:
+        folder = self._folder(trial)
+        runners = result.get(R.ENV_RUNNERS, {})
+        steps = int(result.get(R.ENV_STEPS, 0))
+        label = folder.name if self.study is None else _label(trial.config)
+        line = (f"{label}  iter {result.get(R.ITERATION, 0):>4}  env steps {steps:>10,} "
+                f"({100 * steps / self.total:5.1f}%)  "
+                f"return {runners.get(R.EPISODE_RETURN, math.nan):8.1f}  "
+                f"coverage {runners.get(R.scan_key('coverage'), math.nan):5.3f}  "
+                f"{result.get('time_this_iter_s', 0):5.1f} s/iter")
+        if R.META_AFTER in result:  # meta-poca
+            line += (f"  meta coverage {result[R.META_BEFORE]:5.3f} -> "
+                     f"{result[R.META_AFTER]:5.3f} after adaptation")
+        if result.get(R.EVALUATED):
+            line += f"  eval coverage {result.get(R.EVAL_SCORE, math.nan):5.3f}"
+            R.append_eval(folder, R.eval_entry(result))
+        print(line, flush=True)
+
+    def on_trial_complete(self, iteration, trials, trial, **info) -> None:
+        if self.study is not None:
+            self.finished += 1
+            print(f"finished {self.finished}/{self.trials}: {_label(trial.config)} eval "
+                  f"coverage {trial.last_result.get(R.EVAL_SCORE, math.nan):.3f}", flush=True)
+
+
+def _label(params: dict[str, Any]) -> str:
+    return ", ".join(f"{k}={v}" for k, v in sorted(params.items()))
+
+
+def git_commit() -> str:
+    """The commit of the rl-scan source tree, or 'unknown' outside a git checkout."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                             cwd=Path(__file__).resolve().parent, timeout=10)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def _versions() -> dict[str, str]:
+    import gymnasium
+    import numpy
+    import ray
+    import torch
+
+    import rl_scan
+
+    mods = {"rl_scan": rl_scan, "ray": ray, "torch": torch, "gymnasium": gymnasium,
+            "numpy": numpy}
+    return {name: str(mod.__version__) for name, mod in mods.items()}

@@ -1,0 +1,151 @@
+"""Many training runs, resumable and side by side (the meta-MRSS protocol's runner).
+
+A ``Job`` is one ``launch.train`` run that is skipped once finished (a ``DONE`` file) and
+resumed if interrupted; ``run_jobs`` runs a list of them in order, several at a time,
+each after the job it waits for. Concurrent runs are child processes (see ``run_jobs``
+for why), each logging its stderr to ``logs/`` beside its run folder.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rl_scan.config import RunInterrupted
+from rl_scan.results import DONE, LOG_DIR, RUN_FILE
+from rl_scan.tuning.launch import train
+
+
+def _run(folder: Path, name: str, **kwargs) -> Path:
+    """Train unless finished; resume if interrupted."""
+    run_dir = folder / name
+    if (run_dir / DONE).is_file():
+        return run_dir
+    resume = (run_dir / RUN_FILE).is_file()
+    train(results_dir=folder, name=name, resume=resume, **kwargs)
+    (run_dir / DONE).write_text("finished\n")
+    return run_dir
+
+
+@dataclass(eq=False)
+class Job:
+    """One training run; it may start once ``after`` has finished."""
+
+    label: str
+    folder: Path
+    name: str
+    kwargs: dict[str, Any]
+    after: Job | None = None
+
+    def run(self, child: bool = False, address: str | None = None) -> Path:
+        """Train in this process, or in a child process: on the Ray cluster at
+        ``address``, or else on a local Ray of its own (see ``run_jobs``)."""
+        if not child:
+            return _run(self.folder, self.name, address=address, **self.kwargs)
+        spec = {"folder": str(self.folder), "name": self.name, "address": address,
+                **self.kwargs, "init_from": _str_or_none(self.kwargs.get("init_from"))}
+        log = self.folder.parent / LOG_DIR / f"{self.folder.name}_{self.name}.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with open(log, "ab") as err:  # stdout (progress lines) goes to the terminal
+            proc = subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(spec)],
+                                    stderr=err, start_new_session=True)
+            with _CHILDREN_LOCK:
+                _CHILDREN.add(proc)
+            try:
+                code = proc.wait()
+            finally:
+                with _CHILDREN_LOCK:
+                    _CHILDREN.discard(proc)
+        if code != 0:
+            tail = log.read_text(errors="replace").strip().splitlines()[-5:]
+            raise RuntimeError(f"{self.name} exited with code {code}; from {log}:\n"
+                               + "\n".join(tail))
+        return self.folder / self.name
+
+
+LAUNCH_GAP_S = 2.0  # between child runs on a shared cluster (see run_jobs)
+_CHILD = ("import sys; from rl_scan.tuning.jobs import child_main; "
+          "sys.exit(child_main(sys.argv[1]))")
+_CHILDREN: set[subprocess.Popen] = set()
+_CHILDREN_LOCK = threading.Lock()
+
+
+def _str_or_none(value: Any) -> str | None:
+    return None if value is None else str(value)
+
+
+def child_main(spec_json: str) -> int:
+    """Entry point of a run in a child process (``Job.run`` with an address)."""
+    spec = json.loads(spec_json)
+    try:
+        _run(Path(spec.pop("folder")), spec.pop("name"), **spec)
+    except RunInterrupted as e:
+        print(f"interrupted: {e}", file=sys.stderr)  # the parent says how to resume
+        return 130
+    return 0
+
+
+def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None) -> None:
+    """Run ``jobs`` in list order, ``workers`` at a time, each as soon as its
+    prerequisite has finished. After a failure no new job starts; the running ones
+    finish and the first error is raised.
+
+    One worker runs the jobs in this process. More run each job in a child process,
+    because two Tune runs must not share a driver process (Tune's trainable registry is
+    not thread-safe) nor, locally, a Ray session (runs starting in the same second with
+    the same experiment name share one staging folder, which Tune then syncs into both
+    run folders). A child joins the cluster at ``address`` if given (launches are
+    spaced ``LAUNCH_GAP_S`` apart for this reason), else starts a local Ray of its own.
+    Ctrl+C is passed on to the children, which stop at once (Tune keeps their state):
+    running the protocol again resumes them.
+    """
+    def start(job: Job, count: int) -> None:
+        console.print(f"[bold]run {count}/{len(jobs)}[/]: {job.label}")
+
+    if workers == 1:  # in this thread, so Tune's own Ctrl+C handling applies
+        for count, job in enumerate(jobs, 1):
+            start(job, count)
+            job.run(address=address)
+        return
+    waiting, running, finished = list(jobs), {}, set()
+    failure: BaseException | None = None
+    last_launch = -math.inf
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="protocol") as pool:
+        try:
+            while running or (waiting and failure is None):
+                ready = [j for j in waiting if j.after is None or j.after in finished]
+                for job in ready[:workers - len(running)] if failure is None else []:
+                    waiting.remove(job)
+                    start(job, len(jobs) - len(waiting))
+                    if address is not None:
+                        time.sleep(max(0.0, last_launch + LAUNCH_GAP_S - time.monotonic()))
+                        last_launch = time.monotonic()
+                    running[pool.submit(job.run, True, address)] = job
+                if not running:  # nothing can start: a prerequisite failed
+                    break
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for future in done:
+                    job, error = running.pop(future), future.exception()
+                    if error is None:
+                        finished.add(job)
+                    else:
+                        failure = failure or error
+                        console.print(f"[red]{job.name} failed[/]: {error}")
+        except KeyboardInterrupt:
+            console.print("[red]interrupted[/]: stopping the running runs; run the same "
+                          "command again to resume them")
+            with _CHILDREN_LOCK:
+                for proc in _CHILDREN:
+                    proc.send_signal(signal.SIGINT)
+            raise
+    if failure is not None:
+        raise failure

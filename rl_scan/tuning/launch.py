@@ -1,0 +1,170 @@
+"""Launch one training run through Ray Tune (locally, or on a cluster with ``address``).
+
+Everything is validated before Ray starts: the run's inputs (``driver.make_run_spec``),
+its algorithm config and the CPUs the run needs (a trial that asks for more CPUs than Ray
+has would wait forever). The run folder ``RESULTS/NAME/`` is laid out as
+``rl_scan.results`` describes; ``driver.train_run`` trains it. ``resume=True`` continues
+an interrupted run from its last checkpoint.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # Tune's boxed tables; we print one line/iter
+
+from rl_scan import results as R  # noqa: E402
+from rl_scan.config import ConfigError, RunInterrupted, fail  # noqa: E402
+from rl_scan.tuning.driver import (  # noqa: E402
+    RunProgress,
+    RunSpec,
+    checkpoint_config,
+    make_run_spec,
+    required_cpus,
+    train_run,
+)
+from rl_scan.tuning.presets import TrainPreset  # noqa: E402
+
+
+def scenario_label(scenario: str) -> str:
+    """A folder-name-safe scenario label: test:3 -> test3, train:* -> train-any,
+    path/to/scene.yaml -> scene."""
+    if scenario.endswith((".yaml", ".yml")):
+        return Path(scenario).stem
+    return scenario.replace(":*", "-any").replace(":", "")
+
+
+def check_output_folder(folder: Path, marker: str, what: str, resume: bool) -> None:
+    """A new run/study needs a fresh folder; a resumed one needs its ``marker`` file."""
+    if folder.exists() and not resume:
+        raise ConfigError(f"{what} folder {str(folder)!r} exists: pass --resume to continue "
+                          "it or choose another --name")
+    if resume and not (folder / marker).is_file():
+        raise ConfigError(f"--resume: no {what} to resume in {str(folder)!r}")
+
+
+def check_resources(preset: TrainPreset, available: float) -> None:
+    """Refuse runs whose trial could never be scheduled (Tune would wait silently)."""
+    need = required_cpus(preset)
+    if need > available:
+        fail("num_env_runners", preset.num_env_runners,
+             f"at most {int(available) - 1} on this Ray cluster ({available:g} CPUs; a run "
+             f"needs 1 + num_env_runners = {need})")
+
+
+def init_ray(address: str | None) -> float:
+    """Join the Ray cluster at ``address`` or start a local Ray (once); its CPU count."""
+    import ray
+
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
+    return float(ray.cluster_resources().get("CPU", 0))
+
+
+def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
+          seed: int = 0, results_dir: str | Path = "results", name: str | None = None,
+          address: str | None = None, resume: bool = False,
+          preset_overrides: dict[str, Any] | None = None, init_from: str | Path | None = None,
+          console=None) -> Path:
+    """Run (or resume) one Tune training run; returns its run folder.
+
+    ``init_from``: a checkpoint (or run folder) whose module weights the run starts from
+    (adaptation / fine-tuning); recorded in the run folder's RUN_FILE.
+    """
+    spec = make_run_spec(algo, env_config, preset_name, seed=seed,
+                         preset_overrides=preset_overrides, init_from=init_from)
+    return train_spec(spec, results_dir=results_dir, name=name, address=address,
+                      resume=resume, console=console)
+
+
+def train_spec(spec: RunSpec, *, results_dir: str | Path = "results", name: str | None = None,
+               address: str | None = None, resume: bool = False, console=None) -> Path:
+    """Run (or resume) the training run ``spec`` through Tune; returns its run folder."""
+    from rich.console import Console
+
+    console = console or Console()
+    preset, env = spec.preset, spec.env
+    name = name or f"{spec.algo}_{scenario_label(env.scenario)}_{spec.preset_name}_s{spec.seed}"
+    run_dir = Path(results_dir).resolve() / name
+    check_output_folder(run_dir, R.RUN_FILE, "run", resume)
+    spec.algorithm_config()  # every setting checked before Ray starts
+    check_resources(preset, init_ray(address))
+
+    from ray import tune
+
+    if not resume:
+        run_dir.mkdir(parents=True)
+        R.write_yaml(run_dir / R.RUN_FILE, spec.metadata())
+        if spec.init_from is not None and preset.evaluation_interval > 0:
+            start = evaluate_start_weights(Path(spec.init_from), env,
+                                           preset.evaluation_episodes, spec.seed)
+            R.write_json(run_dir / R.EVAL_FILE, [start])
+            console.print(f"start weights on {env.scenario}: coverage "
+                          f"{start['coverage']:.3f} over {preset.evaluation_episodes} episodes "
+                          "(evaluation 0)")
+    trainable = tune.with_resources(tune.with_parameters(train_run, spec=spec),
+                                    {"cpu": required_cpus(preset)})
+    if resume:
+        console.print(f"resuming {run_dir}")
+        # The run config, the progress callback included, is restored from tuner.pkl.
+        tuner = tune.Tuner.restore(str(run_dir / R.TUNE_DIR), trainable=trainable,
+                                   resume_errored=True, resume_unfinished=True)
+    else:
+        tuner = tune.Tuner(
+            trainable,
+            tune_config=tune.TuneConfig(num_samples=1,
+                                        trial_dirname_creator=lambda t: R.TRAIN_TRIAL),
+            run_config=tune.RunConfig(
+                storage_path=str(run_dir), name=R.TUNE_DIR, verbose=0,
+                checkpoint_config=checkpoint_config(preset),
+                failure_config=tune.FailureConfig(max_failures=2),
+                callbacks=[RunProgress(preset.total_env_steps, run_dir=run_dir)]))
+    console.print(f"[bold]{spec.algo}[/] on {env.scenario} ({env.team.wheeled} wheeled + "
+                  f"{env.team.quad} quads, comm {env.comm_scheme}), preset "
+                  f"{spec.preset_name}: {preset.total_env_steps:,} env steps in "
+                  f"{preset.iterations} iterations -> {run_dir}")
+    grid = tuner.fit()
+    errors = [r.error for r in grid if r.error]
+    if errors:
+        raise RuntimeError(f"training failed: {errors[0]}")
+    steps = max((int(r.metrics.get(R.ENV_STEPS, 0)) for r in grid), default=0)
+    if steps < preset.total_env_steps:  # Tune ends a run quietly on Ctrl+C
+        raise RunInterrupted(f"{name} stopped at {steps:,} of {preset.total_env_steps:,} "
+                             "env steps; its last checkpoint is kept")
+    return run_dir
+
+
+def evaluate_start_weights(checkpoint: Path, env_cfg, episodes: int, seed: int) -> dict:
+    """Evaluation 0 of a run that starts from other weights: its start policy on its own
+    env before any training (how well a pre-trained policy does zero-shot), with the
+    sampled actions and the keys of RLlib's evaluations (``append_eval``)."""
+    import numpy as np
+    import torch
+
+    from rl_scan import metrics as M
+    from rl_scan.algorithms.rollout import PolicyTeam, load_actors
+    from rl_scan.envs.core import ScanCore
+    from rl_scan.envs.episode import run_episode
+
+    core, team = ScanCore(env_cfg), PolicyTeam(load_actors(Path(checkpoint)))
+    torch.manual_seed(seed)
+    episodes_metrics = [run_episode(core, team, seed=10_000 * (seed + 1) + i)
+                        for i in range(episodes)]
+    entry = {R.ITERATION: 0, "env_steps": 0, R.TIME_TOTAL: 0.0,
+             R.EPISODE_RETURN: float(np.mean([
+                 sum(m[k] * n for k, n in zip(M.RETURN_BY_KIND.values(),
+                                              (env_cfg.team.wheeled, env_cfg.team.quad)))
+                 for m in episodes_metrics]))}
+    for key in M.EPISODE_METRICS:
+        values = np.array([m[key] for m in episodes_metrics], dtype=float)
+        if key in M.STEPS_TO.values():  # as the callback: the mean over runs reaching it
+            entry["reached_" + key[len("steps_to_"):]] = float(np.mean(~np.isnan(values)))
+            values = values[~np.isnan(values)]
+        if len(values):
+            entry[key] = float(values.mean())
+    return entry

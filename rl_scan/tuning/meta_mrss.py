@@ -1,0 +1,260 @@
+"""``rl-scan experiment meta-mrss``: the paper's protocol (Sec. IV-B) on held-out scenarios.
+
+Methods (each gets the same pre-training budget, then the same adaptation budget):
+  meta-mrss  MetaPOCA meta-trained on train scenarios, then adapted (POCA) per test scene;
+  dr         domain randomisation: POCA on a fresh train scenario every episode (train:*),
+             then fine-tuned per test scene;
+  transfer   transfer learning: POCA trained on one train scenario (train:0), then
+             fine-tuned per test scene;
+  poca       standard POCA, from scratch on each test scene (no pre-training).
+Adaptation is POCA training started from the method's weights on ``test:N``, evaluated
+every ``eval_interval`` iterations. From each adaptation curve (evaluation coverage over
+adaptation env steps) we take, defined up front:
+  final coverage  the last evaluation's mean coverage (the paper's "scanning success rate");
+  steps to 80 %   the first evaluation's env steps with mean coverage >= 0.8 (none if never);
+  success         the last evaluation's fraction of episodes with coverage >= 95 %.
+
+Layout: an experiment folder of ``rl_scan.results``: its pre-training and adaptation runs
+are ordinary run folders, and a summary (JSON) and a table (Markdown) hold the results. A
+finished run has a ``DONE`` file; re-running the command skips finished runs and resumes
+interrupted ones. Independent
+runs go side by side (``jobs.py``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rl_scan import metrics as M
+from rl_scan import results as R
+from rl_scan.algorithms.registry import get_algorithm
+from rl_scan.config import ConfigError, check_range, fail
+from rl_scan.envs.sim.scenarios import N_TEST
+from rl_scan.studies import PAPER_META_SUCCESS
+from rl_scan.tuning.driver import make_run_spec, required_cpus
+from rl_scan.tuning.jobs import Job, run_jobs
+from rl_scan.tuning.launch import check_resources, init_ray, scenario_label
+from rl_scan.tuning.presets import PROTOCOLS, Protocol, get_preset
+
+METHODS = ("meta-mrss", "dr", "transfer", "poca")
+# method -> (algorithm, pre-training scenario); "poca" has no pre-training
+PRETRAIN = {"meta-mrss": ("meta-poca", "train:*"), "dr": ("poca", "train:*"),
+            "transfer": ("poca", "train:0")}
+TARGET = 0.8
+
+
+def parse_tests(text: str) -> list[str]:
+    """'0,1,4' or 'test:0,test:3' -> ['test:0', ...]; train scenarios are refused."""
+    out = []
+    for item in [t.strip() for t in str(text).split(",") if t.strip()]:
+        name = item if ":" in item else f"test:{item}"
+        kind, _, index = name.partition(":")
+        if kind == "train":
+            raise ConfigError(f"tests: {name!r} is in the train set; held-out scenarios "
+                              f"are test:0 .. test:{N_TEST - 1}")
+        if kind != "test" or not index.isdigit() or not 0 <= int(index) < N_TEST:
+            fail("tests", item, f"test scenario indices 0..{N_TEST - 1} (e.g. 0,1,2)")
+        out.append(f"test:{int(index)}")
+    if not out:
+        fail("tests", text, f"at least one of 0..{N_TEST - 1}")
+    return out
+
+
+def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protocol) -> None:
+    for m in methods:
+        if m not in METHODS:
+            fail("methods", m, f"any of {', '.join(METHODS)}")
+    if not methods:
+        fail("methods", "", f"any of {', '.join(METHODS)}")
+    check_range("seeds", seeds, 1, 100)
+    check_range("pretrain_steps", protocol.pretrain_steps, 1)
+    check_range("adapt_steps", protocol.adapt_steps, 1)
+    check_range("eval_interval", protocol.eval_interval, 1)
+
+
+def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
+              protocol: Protocol, env_config: dict[str, Any]) -> list[Job]:
+    """Every run of the protocol, seed by seed (the order runs start in): each method's
+    pre-training, then its adaptation to every test scene (which waits for it)."""
+    jobs = []
+    for seed in range(seeds):
+        for method in methods:
+            pre = None
+            if method in PRETRAIN:
+                algo, scenario = PRETRAIN[method]
+                overrides = {"total_env_steps": protocol.pretrain_steps}
+                if get_algorithm(algo).local_sampling:
+                    overrides["num_env_runners"] = 0
+                pre = Job(f"pre-train {method} (seed {seed}, {protocol.pretrain_steps:,} "
+                          "env steps)", root / R.PRETRAIN_DIR, f"{method}_s{seed}",
+                          dict(algo=algo, env_config={**env_config, "scenario": scenario},
+                               preset_name=protocol.train_preset, seed=seed,
+                               preset_overrides=overrides))
+                jobs.append(pre)
+            for test in tests:
+                jobs.append(Job(
+                    f"adapt {method} on {test} (seed {seed}, {protocol.adapt_steps:,} env "
+                    "steps)", root / R.ADAPT_DIR, f"{method}_{scenario_label(test)}_s{seed}",
+                    dict(algo="poca", env_config={**env_config, "scenario": test},
+                         preset_name=protocol.train_preset, seed=seed,
+                         init_from=pre.folder / pre.name if pre else None,
+                         preset_overrides={"total_env_steps": protocol.adapt_steps,
+                                           "evaluation_interval": protocol.eval_interval}),
+                    after=pre))
+    return jobs
+
+
+def check_jobs(jobs: list[Job]) -> None:
+    """Build every run's algorithm config (without Ray) so bad settings fail up front."""
+    seen = set()
+    for job in jobs:
+        kw = job.kwargs
+        key = (kw["algo"], kw["env_config"]["scenario"])
+        if key not in seen:
+            seen.add(key)
+            make_run_spec(kw["algo"], kw["env_config"], kw["preset_name"], seed=kw["seed"],
+                          preset_overrides=kw["preset_overrides"]).algorithm_config()
+
+
+def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
+                 methods: tuple[str, ...] | list[str] = METHODS, tests: list[str] | None = None,
+                 seeds: int = 3, env_config: dict[str, Any] | None = None,
+                 protocol_overrides: dict[str, int] | None = None, jobs: int | None = None,
+                 address: str | None = None, console=None) -> dict:
+    """Pre-train and adapt every method on every test scene and seed; returns the summary.
+
+    ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold).
+    """
+    from rich.console import Console
+
+    console = console or Console()
+    if preset not in PROTOCOLS:
+        fail("preset", preset, f"one of {sorted(PROTOCOLS)}")
+    protocol = Protocol(**{**PROTOCOLS[preset].__dict__, **(protocol_overrides or {})})
+    tests = tests or [f"test:{i}" for i in range(N_TEST)]
+    methods = list(methods)
+    validate(methods, tests, seeds, protocol)
+    if jobs is not None:
+        check_range("jobs", jobs, 1)
+    env_config = dict(env_config or {})
+    root = Path(results_dir).resolve() / name
+    plan = plan_jobs(root, methods, tests, seeds, protocol, env_config)
+    check_jobs(plan)
+    need = required_cpus(get_preset(protocol.train_preset))
+    cpus = _available_cpus(address)
+    check_resources(get_preset(protocol.train_preset), cpus)
+    most = max(1, int(cpus) // need)
+    if jobs is not None and jobs > most:
+        fail("jobs", jobs, f"at most {most} on this Ray cluster ({cpus:g} CPUs, {need} per run)")
+    workers = min(jobs or most, len(plan))
+    root.mkdir(parents=True, exist_ok=True)
+    R.write_yaml(root / R.PROTOCOL_FILE, {  # lets a report say what is missing
+        "preset": preset, "methods": methods, "tests": tests, "seeds": seeds,
+        "protocol": dict(protocol.__dict__),
+        "planned_runs": {kind: sum(j.folder.name == kind for j in plan)
+                         for kind in (R.PRETRAIN_DIR, R.ADAPT_DIR)}})
+    console.print(f"[bold]meta-mrss[/]: {len(plan)} runs, {workers} at a time -> {root}")
+    run_jobs(plan, workers, console, address=address)
+    summary = summarize(root, methods, tests, seeds)
+    R.write_json(root / R.SUMMARY_FILE, summary)
+    (root / R.TABLE_FILE).write_text(format_table(summary))
+    console.print(format_table(summary))
+    return summary
+
+
+def curve_metrics(entries: list[dict[str, Any]], target: float = TARGET) -> dict[str, float]:
+    """Final coverage, env steps to ``target`` coverage (nan if never), final success, and
+    the start weights' coverage before adaptation (evaluation 0; nan without one)."""
+    if not entries:
+        return {"final_coverage": math.nan, "steps_to_80": math.nan, "success": math.nan,
+                "start_coverage": math.nan}
+    reached = [e["env_steps"] for e in entries if e.get(M.COVERAGE, 0.0) >= target]
+    start = entries[0][M.COVERAGE] if entries[0]["env_steps"] == 0 else math.nan
+    return {"final_coverage": float(entries[-1][M.COVERAGE]),
+            "steps_to_80": float(reached[0]) if reached else math.nan,
+            "success": float(entries[-1].get(M.SUCCESS, math.nan)),
+            "start_coverage": float(start)}
+
+
+def summarize(root: Path, methods: list[str], tests: list[str], seeds: int) -> dict:
+    """Per method: each seed's mean over test scenes, then mean and std over seeds."""
+    out: dict[str, Any] = {"methods": {}, "missing": []}
+    for method in methods:
+        per_seed: dict[str, list[float]] = {"final_coverage": [], "steps_to_80": [],
+                                            "success": [], "reached_80": [],
+                                            "start_coverage": []}
+        runs = {}
+        for seed in range(seeds):
+            rows = []
+            for test in tests:
+                run = root / R.ADAPT_DIR / f"{method}_{scenario_label(test)}_s{seed}"
+                if not (run / R.EVAL_FILE).is_file():
+                    out["missing"].append(str(run))
+                    continue
+                entries = R.read_evals(run)
+                rows.append(curve_metrics(entries))
+                runs[run.name] = {"curve": [(e["env_steps"], e[M.COVERAGE]) for e in entries],
+                                  **rows[-1]}
+            if not rows:
+                continue
+            steps = [r["steps_to_80"] for r in rows]
+            per_seed["final_coverage"].append(float(np.mean([r["final_coverage"] for r in rows])))
+            per_seed["start_coverage"].append(_nanstat(np.nanmean,
+                                                       [r["start_coverage"] for r in rows]))
+            per_seed["success"].append(float(np.nanmean([r["success"] for r in rows])))
+            per_seed["reached_80"].append(float(np.mean([not math.isnan(s) for s in steps])))
+            reached = [s for s in steps if not math.isnan(s)]
+            per_seed["steps_to_80"].append(float(np.mean(reached)) if reached else math.nan)
+        out["methods"][method] = {
+            k: {"mean": _nanstat(np.nanmean, v), "std": _nanstat(np.nanstd, v), "values": v}
+            for k, v in per_seed.items()}
+        out["methods"][method]["runs"] = runs
+    return out
+
+
+def _available_cpus(address: str | None) -> float:
+    """CPUs of the cluster at ``address`` (or of the Ray this process runs), else of this
+    machine (local child runs start Ray themselves)."""
+    import ray
+
+    if address or ray.is_initialized():
+        return init_ray(address)
+    return float(os.cpu_count() or 1)
+
+
+def _nanstat(func, values: list[float]) -> float:
+    vals = np.asarray(values, dtype=float)
+    return float(func(vals)) if len(vals) and not np.all(np.isnan(vals)) else math.nan
+
+
+def format_table(summary: dict) -> str:
+    """Markdown: method x (zero-shot coverage, final coverage, steps to 80 %, success),
+    mean +- std over seeds, with the paper's scanning success rates beside ours."""
+    lines = ["| method | coverage % before adaptation (zero-shot) | final coverage % | "
+             "env steps to 80 % (runs reaching it) | success % | "
+             "paper's scanning success % |", "|---|---|---|---|---|---|"]
+    def pm(stats, key, scale=1.0, fmt="{:.1f}"):
+        m, sd = stats[key]["mean"], stats[key]["std"]
+        return "-" if math.isnan(m) else f"{fmt.format(m * scale)} ± {fmt.format(sd * scale)}"
+
+    for method, s in summary["methods"].items():
+        reach = s["reached_80"]["mean"]
+        lines.append(f"| {method} | {pm(s, 'start_coverage', 100)} | "
+                     f"{pm(s, 'final_coverage', 100)} | "
+                     f"{pm(s, 'steps_to_80', 1, '{:,.0f}')} "
+                     f"({'-' if math.isnan(reach) else f'{100 * reach:.0f} %'}) | "
+                     f"{pm(s, 'success', 100)} | {PAPER_META_SUCCESS.get(method, '-')} |")
+    meta, poca = summary["methods"].get("meta-mrss"), summary["methods"].get("poca")
+    if meta and poca:
+        a, b = meta["steps_to_80"]["mean"], poca["steps_to_80"]["mean"]
+        ratio = "-" if math.isnan(a) or math.isnan(b) else f"{a / b:.2f}"
+        lines.append(f"\nmeta-MRSS / standard POCA env steps to 80 %: {ratio} (goal <= 0.30)")
+    if summary["missing"]:
+        lines.append(f"\nmissing runs ({len(summary['missing'])}): "
+                     + ", ".join(Path(m).name for m in summary["missing"]))
+    return "\n".join(lines) + "\n"

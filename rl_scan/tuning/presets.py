@@ -1,0 +1,92 @@
+"""Training budgets: ``smoke`` (seconds, tests), ``quick`` (minutes on 2 cores), ``paper``.
+
+A preset fixes the budget and batch sizes; env settings stay in EnvConfig (a preset may
+shorten episodes through ``env_overrides`` so that tiny budgets still finish episodes) and
+an algorithm's own settings in its registry entry (``algorithms/registry.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from rl_scan.config import build_config, check_range, fail
+
+
+@dataclass(frozen=True)
+class TrainPreset:
+    """Budget and optimisation settings of one training run."""
+
+    total_env_steps: int
+    """Stop after this many env steps (all robots act in one env step)."""
+    train_batch_size: int
+    """Env steps sampled per training iteration."""
+    minibatch_size: int
+    """Agent rows per SGD minibatch."""
+    num_epochs: int = 3
+    """Passes over each batch (paper: 3)."""
+    lr: float = 3e-4
+    num_env_runners: int = 0
+    """Remote sampling actors (0 = sample in the training process)."""
+    num_envs_per_env_runner: int = 4
+    evaluation_interval: int = 5
+    """Evaluate every N iterations (0 = never)."""
+    evaluation_episodes: int = 3
+    checkpoint_frequency: int = 5
+    """Checkpoint every N iterations (and at the end)."""
+    env_overrides: dict[str, Any] = field(default_factory=dict)
+    """EnvConfig fields this preset changes (e.g. shorter episodes for smoke runs)."""
+    def validate(self, prefix: str = "") -> None:
+        check_range(prefix + "total_env_steps", self.total_env_steps, 1)
+        check_range(prefix + "train_batch_size", self.train_batch_size, 1)
+        check_range(prefix + "minibatch_size", self.minibatch_size, 1)
+        check_range(prefix + "num_epochs", self.num_epochs, 1, 100)
+        check_range(prefix + "lr", self.lr, 0.0, 1.0, lo_open=True)
+        check_range(prefix + "num_env_runners", self.num_env_runners, 0, 1024)
+        check_range(prefix + "num_envs_per_env_runner", self.num_envs_per_env_runner, 1, 256)
+        check_range(prefix + "evaluation_interval", self.evaluation_interval, 0)
+        check_range(prefix + "evaluation_episodes", self.evaluation_episodes, 1)
+        check_range(prefix + "checkpoint_frequency", self.checkpoint_frequency, 1)
+
+    @property
+    def iterations(self) -> int:
+        return -(-self.total_env_steps // self.train_batch_size)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "smoke": dict(total_env_steps=800, train_batch_size=400, minibatch_size=256, num_epochs=1,
+                  num_envs_per_env_runner=2, evaluation_interval=1, evaluation_episodes=1,
+                  checkpoint_frequency=1, env_overrides={"max_steps": 50}),
+    "quick": dict(total_env_steps=200_000, train_batch_size=4_000, minibatch_size=1_024,
+                  num_epochs=3, num_envs_per_env_runner=4, evaluation_interval=5,
+                  evaluation_episodes=3, checkpoint_frequency=5),
+    "paper": dict(total_env_steps=8_000_000, train_batch_size=10_240, minibatch_size=1_024,
+                  num_epochs=3, num_env_runners=2, num_envs_per_env_runner=4,
+                  evaluation_interval=10, evaluation_episodes=10, checkpoint_frequency=10),
+}
+
+
+def get_preset(name: str, overrides: dict[str, Any] | None = None) -> TrainPreset:
+    """A named preset with optional field overrides, validated."""
+    if name not in PRESETS:
+        fail("preset", name, f"one of {sorted(PRESETS)}")
+    return build_config(TrainPreset, {**PRESETS[name], **(overrides or {})}, prefix="preset.")
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Budgets of one meta-MRSS protocol preset (env steps per pre-training and per
+    adaptation run, trained with ``train_preset``)."""
+
+    train_preset: str
+    pretrain_steps: int
+    adapt_steps: int
+    eval_interval: int
+
+
+PROTOCOLS = {  # the meta-MRSS experiment's budgets (`rl-scan experiment meta-mrss`)
+    "smoke": Protocol("smoke", pretrain_steps=800, adapt_steps=800, eval_interval=1),
+    "quick": Protocol("quick", pretrain_steps=100_000, adapt_steps=40_000, eval_interval=2),
+    "paper": Protocol("paper", pretrain_steps=8_000_000, adapt_steps=2_000_000,
+                      eval_interval=10),
+}

@@ -1,1 +1,0 @@
-"""Tune launches and Optuna ablation studies land here: issue #6."""
