@@ -44,7 +44,9 @@ def configure_scan(config: AlgorithmConfig, env_config: EnvConfig | dict[str, An
               .env_runners(num_env_runners=num_env_runners,
                            num_envs_per_env_runner=num_envs_per_env_runner)
               .learners(num_learners=0)
-              .multi_agent(policies=set(team_kinds(env)), policy_mapping_fn=policy_mapping)
+              # A list, not a set: RLlib builds the modules (and so draws their initial
+              # weights) in this order, and a set's order changes with PYTHONHASHSEED.
+              .multi_agent(policies=team_kinds(env), policy_mapping_fn=policy_mapping)
               .callbacks(ScanMetricsCallback)
               .debugging(seed=seed))
     if evaluation_interval > 0:

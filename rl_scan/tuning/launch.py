@@ -54,15 +54,21 @@ def check_resources(preset: TrainPreset, available: float) -> None:
              f"needs 1 + num_env_runners = {need})")
 
 
+# Same seed, same run: RLlib iterates over sets of module ids while sampling, and a set's
+# order follows the string hash seed, so every Ray worker of ours gets a fixed one.
+RUNTIME_ENV = {"env_vars": {"PYTHONHASHSEED": "0"}}
+
+
 def init_ray(address: str | None) -> float:
     """Join the Ray cluster at ``address`` or start a local Ray (once); its CPU count."""
     import ray
 
     if not ray.is_initialized():
         if address:
-            ray.init(address=address, log_to_driver=False)
+            ray.init(address=address, log_to_driver=False, runtime_env=RUNTIME_ENV)
         else:
-            ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
+            ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False,
+                     runtime_env=RUNTIME_ENV)
     return float(ray.cluster_resources().get("CPU", 0))
 
 
