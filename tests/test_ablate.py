@@ -44,6 +44,22 @@ def test_a_trial_keeps_the_users_env_under_its_condition():
     assert base.for_trial("algo", {"condition": "ppo", "seed": 0}).algo == "ppo"
 
 
+def test_the_reward_study_crosses_reward_mode_with_the_algorithm():
+    study = STUDIES["reward"]
+    assert study.run_of({"condition": "poca/team", "seed": 1}) == TrialRun(
+        "poca", {"reward_mode": "team"})
+    assert study.run_of({"condition": "ppo/individual"}) == TrialRun(
+        "ppo", {"reward_mode": "individual"})
+    base = make_run_spec("poca", {}, "smoke")
+    specs = [base.for_trial("reward", p) for p in study.example_params()]
+    assert {(s.algo, s.env.reward_mode) for s in specs} == {
+        (a, m) for a in ("poca", "ppo") for m in ("individual", "team")}
+    for spec in specs:  # every condition is a valid run
+        spec.algorithm_config()
+    assert ("poca/team", "poca/individual") in study.report.comparisons
+    assert search_space(study, 3)[2] == 12
+
+
 def test_grid_size_is_conditions_times_seeds():
     assert search_space(STUDIES["comm"], 3)[2] == 24
     assert search_space(STUDIES["team"], 2)[2] == 6
