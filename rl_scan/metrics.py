@@ -14,8 +14,3 @@ CELLS_TOTAL = "cells_total"
 EPISODE_METRICS = (COVERAGE, SUCCESS, *STEPS_TO.values(), COLLISIONS,
                    *COLLISIONS_BY_KIND.values(), *RETURN_BY_KIND.values(), EPISODE_STEPS,
                    CELLS_SCANNED, CELLS_TOTAL)
-
-# Files in a run folder that reports read (written by training and `rl-scan evaluate --best`).
-EVAL_FILE = "eval_metrics.json"  # every training-time evaluation
-BEST_EVAL_FILE = "best_checkpoint_eval.json"  # the best kept checkpoint, re-evaluated
-PROTOCOL_FILE = "protocol.yaml"  # a meta-MRSS experiment's plan (methods, tests, seeds, runs)

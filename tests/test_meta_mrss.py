@@ -8,6 +8,7 @@ import math
 
 import pytest
 
+from rl_scan import results as R
 from rl_scan.cli import main
 from rl_scan.config import ConfigError
 from rl_scan.tuning.jobs import Job, run_jobs
@@ -55,7 +56,7 @@ def test_every_paper_run_is_checked_up_front_and_meta_poca_samples_locally(tmp_p
     check_jobs(plan)  # the paper preset's 2 env runners would be refused by MetaPOCA
     adapt = [j for j in plan if j.name == "dr_test4_s1"][0]
     assert adapt.after.name == "dr_s1"
-    assert adapt.kwargs["init_from"] == tmp_path / "pretrain" / "dr_s1"
+    assert adapt.kwargs["init_from"] == tmp_path / R.PRETRAIN_DIR / "dr_s1"
     assert all(j.after is None for j in plan if j.name.startswith("poca_"))
     with pytest.raises(ConfigError, match="comm_scheme"):
         check_jobs(plan_jobs(tmp_path, ["poca"], ["test:0"], 1, PROTOCOLS["smoke"],
@@ -131,9 +132,9 @@ def test_curve_metrics_by_hand():
 
 
 def _eval_file(root, method, test, seed, points):
-    run = root / "adapt" / f"{method}_{test.replace(':', '')}_s{seed}"
+    run = root / R.ADAPT_DIR / f"{method}_{test.replace(':', '')}_s{seed}"
     run.mkdir(parents=True)
-    (run / "eval_metrics.json").write_text(json.dumps(
+    (run / R.EVAL_FILE).write_text(json.dumps(
         [{"env_steps": s, "coverage": c, "success": float(c >= 0.95)} for s, c in points]))
 
 
@@ -169,11 +170,11 @@ def test_smoke_protocol_end_to_end(ray_session, tmp_path):
     summary = run_protocol(tmp_path, "mm", preset="smoke", methods=["meta-mrss", "poca"],
                            tests=["test:0"], seeds=1)
     root = tmp_path / "mm"
-    assert (root / "pretrain" / "meta-mrss_s0" / "DONE").is_file()
-    meta_run = root / "adapt" / "meta-mrss_test0_s0"
+    assert (root / R.PRETRAIN_DIR / "meta-mrss_s0" / R.DONE).is_file()
+    meta_run = root / R.ADAPT_DIR / "meta-mrss_test0_s0"
     import yaml
 
-    run = yaml.safe_load((meta_run / "run.yaml").read_text())
+    run = yaml.safe_load((meta_run / R.RUN_FILE).read_text())
     assert run["init_from"] and "meta-mrss_s0" in run["init_from"]
     assert run["env_config"]["scenario"] == "test:0"
     for method in ("meta-mrss", "poca"):
@@ -183,11 +184,11 @@ def test_smoke_protocol_end_to_end(ray_session, tmp_path):
         assert [s for s, _ in curve] == [0] * (method == "meta-mrss") + [
             400 * (i + 1) for i in range(evals)]
         assert all(0.0 <= c <= 1.0 for _, c in curve)
-    entries = json.loads((meta_run / "eval_metrics.json").read_text())
+    entries = json.loads((meta_run / R.EVAL_FILE).read_text())
     assert entries[0]["training_iteration"] == 0
     assert set(entries[1]) - set(entries[0]) <= {"module_returns"}  # the same metrics
     assert not summary["missing"]
-    assert (root / "table.md").read_text().count("|") > 10
+    assert (root / R.TABLE_FILE).read_text().count("|") > 10
 
 
 def test_init_from_loads_every_shared_module_into_learner_and_runner(ray_session, tmp_path):
@@ -240,25 +241,25 @@ def test_ctrl_c_stops_parallel_runs_unfinished_and_a_rerun_completes_them(tmp_pa
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    adapt = tmp_path / "mm" / "adapt"
+    adapt = tmp_path / "mm" / R.ADAPT_DIR
     runs = [adapt / "poca_test0_s0", adapt / "poca_test1_s0"]
     deadline = time.time() + 180
     while time.time() < deadline and not all(
-            list((r / "tune" / "trial").glob("checkpoint_*")) for r in runs):
+            list((r / R.TUNE_DIR / R.TRAIN_TRIAL).glob("checkpoint_*")) for r in runs):
         time.sleep(0.2)
     os.kill(proc.pid, signal.SIGINT)  # the parent only: it passes Ctrl+C on to its runs
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130 and "interrupted" in err, err[-2000:]
-    assert not any((r / "DONE").exists() for r in runs)
-    stopped_at = [json.loads((r / "eval_metrics.json").read_text())[-1]["env_steps"]
+    assert not any((r / R.DONE).exists() for r in runs)
+    stopped_at = [json.loads((r / R.EVAL_FILE).read_text())[-1]["env_steps"]
                   for r in runs]
     assert all(s < 6000 for s in stopped_at)
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     for run in runs:
-        assert (run / "DONE").is_file()
-        iters = [e["training_iteration"] for e in json.loads((run / "eval_metrics.json")
+        assert (run / R.DONE).is_file()
+        iters = [e["training_iteration"] for e in json.loads((run / R.EVAL_FILE)
                                                                .read_text())]
         assert iters == list(range(1, 16))  # resumed, not restarted: each iteration once
         # runs started side by side keep apart (a shared Ray session mixed their trials)
-        assert [p.name for p in (run / "tune").glob("trial*")] == ["trial"]
+        assert [p.name for p in (run / R.TUNE_DIR).glob("trial*")] == [R.TRAIN_TRIAL]

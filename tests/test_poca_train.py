@@ -8,6 +8,7 @@ import math
 import torch
 from ray.rllib.algorithms.algorithm import Algorithm
 
+from rl_scan import results as R
 from rl_scan.algorithms.poca import POCA, poca_config
 from rl_scan.tuning.launch import train
 
@@ -47,7 +48,7 @@ def test_poca_trains_checkpoints_and_restores(ray_session, tmp_path):
 
 def test_poca_smoke_preset_through_tune(ray_session, tmp_path):
     run_dir = train("poca", {"scenario": "test:2"}, "smoke", results_dir=tmp_path)
-    evals = json.loads((run_dir / "eval_metrics.json").read_text())
+    evals = json.loads((run_dir / R.EVAL_FILE).read_text())
     assert [e["training_iteration"] for e in evals] == [1, 2]
     assert all(0.0 <= e["coverage"] <= 1.0 for e in evals)
 

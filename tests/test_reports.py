@@ -68,7 +68,7 @@ def _study(root, finals: dict[str, list[float]], episodes: int = 3, kind: str = 
             tune_trial = R.tune_trial_dir(run)
             tune_trial.mkdir(parents=True)
             (tune_trial / R.PROGRESS_FILE).write_text(
-                "training_iteration,num_env_steps_sampled_lifetime,time_total_s\n"
+                f"training_iteration,{R.ENV_STEPS},time_total_s\n"
                 "10,40000,100.0\n")
     return study
 
@@ -125,15 +125,15 @@ def test_report_refuses_a_folder_without_runs(tmp_path):
 
 def _run(root, name: str, algo: str, seed: int, curve: list[float], best=None):
     run = root / name
-    (run / "tune" / "trial").mkdir(parents=True)
-    (run / "run.yaml").write_text(yaml.safe_dump(
+    (run / R.TUNE_DIR / R.TRAIN_TRIAL).mkdir(parents=True)
+    (run / R.RUN_FILE).write_text(yaml.safe_dump(
         {"algo": algo, "seed": seed, "preset_config": {"evaluation_episodes": 3},
          "env_config": {"scenario": "ablation"}}))
-    (run / "eval_metrics.json").write_text(json.dumps(
+    (run / R.EVAL_FILE).write_text(json.dumps(
         [{"training_iteration": 5 * (i + 1), "env_steps": 20000 * (i + 1), "coverage": c,
           "success": float(c >= 0.95)} for i, c in enumerate(curve)]))
     if best is not None:
-        (run / "best_checkpoint_eval.json").write_text(json.dumps(best))
+        (run / R.BEST_EVAL_FILE).write_text(json.dumps(best))
 
 
 def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path):
@@ -178,11 +178,11 @@ def test_report_html_renders_in_headless_chromium(tmp_path, chromium):
 
 def test_a_partial_meta_mrss_experiment_says_what_is_missing(tmp_path):
     exp = tmp_path / "mm"
-    (exp / "adapt").mkdir(parents=True)
-    (exp / "protocol.yaml").write_text(yaml.safe_dump(
+    (exp / R.ADAPT_DIR).mkdir(parents=True)
+    (exp / R.PROTOCOL_FILE).write_text(yaml.safe_dump(
         {"methods": ["meta-mrss", "poca"], "tests": ["test:0", "test:1"], "seeds": 1,
-         "planned_runs": {"pretrain": 1, "adapt": 4}}))
-    _run(exp / "adapt", "poca_test0_s0", "poca", 0, [0.3, 0.5])
+         "planned_runs": {R.PRETRAIN_DIR: 1, R.ADAPT_DIR: 4}}))
+    _run(exp / R.ADAPT_DIR, "poca_test0_s0", "poca", 0, [0.3, 0.5])
     data = collect(tmp_path)
     assert data.planned == {"mm/adapt": 4} and data.runs[0].condition == "poca"
     md = (build_report(tmp_path, reference=False) / "report.md").read_text()

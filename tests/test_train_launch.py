@@ -15,6 +15,7 @@ import pytest
 import yaml
 from PIL import Image
 
+from rl_scan import results as R
 from rl_scan.cli import main
 from rl_scan.config import ConfigError
 from rl_scan.tuning.launch import check_resources, train
@@ -22,7 +23,7 @@ from rl_scan.tuning.presets import get_preset
 
 
 def _progress(run_dir: Path) -> list[dict]:
-    with open(run_dir / "tune" / "trial" / "progress.csv") as f:
+    with open(run_dir / R.TUNE_DIR / R.TRAIN_TRIAL / R.PROGRESS_FILE) as f:
         return list(csv.DictReader(f))
 
 
@@ -35,17 +36,17 @@ def ppo_run(ray_session, tmp_path_factory):
 
 def test_ppo_smoke_run_writes_a_complete_run_folder(ppo_run):
     run_dir = ppo_run
-    meta = yaml.safe_load((run_dir / "run.yaml").read_text())
+    meta = yaml.safe_load((run_dir / R.RUN_FILE).read_text())
     assert meta["algo"] == "ppo" and meta["seed"] == 3 and len(meta["git_commit"]) >= 7
     assert meta["env_config"]["scenario"] == "test:2"
     assert meta["env_config"]["max_steps"] == 50  # the smoke preset's env override
-    evals = json.loads((run_dir / "eval_metrics.json").read_text())
+    evals = json.loads((run_dir / R.EVAL_FILE).read_text())
     assert [e["training_iteration"] for e in evals] == [1, 2]
     assert all(0.0 <= e["coverage"] <= 1.0 and e["episode_steps"] <= 50 for e in evals)
     rows = _progress(run_dir)
-    assert [int(float(r["num_env_steps_sampled_lifetime"])) for r in rows] == [400, 800]
-    assert sorted(p.name for p in (run_dir / "tune" / "trial").glob("checkpoint_*"))
-    assert list((run_dir / "tune" / "trial").glob("events.out.tfevents*"))
+    assert [int(float(r[R.ENV_STEPS])) for r in rows] == [400, 800]
+    assert sorted(p.name for p in (run_dir / R.TUNE_DIR / R.TRAIN_TRIAL).glob("checkpoint_*"))
+    assert list((run_dir / R.TUNE_DIR / R.TRAIN_TRIAL).glob("events.out.tfevents*"))
     with pytest.raises(ConfigError, match="exists: pass --resume"):
         train("ppo", {"scenario": "test:2"}, "smoke", results_dir=run_dir.parent,
               name=run_dir.name)
@@ -68,19 +69,20 @@ def test_evaluate_and_render_a_checkpoint(ppo_run, tmp_path, capsys, monkeypatch
 def test_best_checkpoints_are_kept_and_re_evaluated_for_the_report(ray_session, tmp_path,
                                                                    capsys):
     """6 iterations, a checkpoint each: Tune keeps the 3 best by evaluation coverage plus the
-    latest; `evaluate --best` plays the best one and records it beside eval_metrics.json."""
+    latest; `evaluate --best` plays the best one and records it in the run folder."""
     run = train("ppo", {"scenario": "test:2"}, "smoke", seed=1, results_dir=tmp_path,
                 preset_overrides={"total_env_steps": 2400})
     cov = {e["training_iteration"]: e["coverage"]
-           for e in json.loads((run / "eval_metrics.json").read_text())}
+           for e in json.loads((run / R.EVAL_FILE).read_text())}
     assert sorted(cov) == [1, 2, 3, 4, 5, 6]
     # checkpoint_00000k holds iteration k+1
-    kept = {int(p.name.split("_")[1]) + 1 for p in (run / "tune" / "trial").glob("checkpoint_*")}
+    trial = run / R.TUNE_DIR / R.TRAIN_TRIAL
+    kept = {int(p.name.split("_")[1]) + 1 for p in trial.glob("checkpoint_*")}
     deleted = set(cov) - kept
     assert 6 in kept and len(kept) == (3 if 6 in sorted(cov, key=cov.get)[-3:] else 4)
     assert min(cov[i] for i in kept - {6}) >= max(cov[i] for i in deleted)
     assert main(["evaluate", str(run), "--best", "--episodes", "2", "--no-reference"]) == 0
-    best = json.loads((run / "best_checkpoint_eval.json").read_text())
+    best = json.loads((run / R.BEST_EVAL_FILE).read_text())
     assert best["eval_coverage"] == pytest.approx(max(cov.values()))
     assert cov[best["training_iteration"]] == pytest.approx(max(cov.values()))
     assert best["env_steps"] == 400 * best["training_iteration"]
@@ -111,7 +113,7 @@ def test_sigkill_then_resume_continues_from_the_last_checkpoint(tmp_path):
            "--total-env-steps", "4000", "--results", str(tmp_path), "--name", "run"]
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    trial = tmp_path / "run" / "tune" / "trial"
+    trial = tmp_path / "run" / R.TUNE_DIR / R.TRAIN_TRIAL
     deadline = time.time() + 120
     while time.time() < deadline and len(list(trial.glob("checkpoint_*"))) < 3:
         time.sleep(0.2)
@@ -124,11 +126,11 @@ def test_sigkill_then_resume_continues_from_the_last_checkpoint(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     rows = _progress(tmp_path / "run")
     iters = [int(r["training_iteration"]) for r in rows]
-    steps = [int(float(r["num_env_steps_sampled_lifetime"])) for r in rows]
+    steps = [int(float(r[R.ENV_STEPS])) for r in rows]
     assert iters[-1] == 10 and steps[-1] == 4000
     # A restart from scratch would log iterations 1, 2, ... (and 400 env steps) again.
     assert iters == sorted(set(iters)) and steps == sorted(set(steps))
-    evals = json.loads((tmp_path / "run" / "eval_metrics.json").read_text())
+    evals = json.loads((tmp_path / "run" / R.EVAL_FILE).read_text())
     logged = [e["training_iteration"] for e in evals]
     assert logged == sorted(set(logged)) and logged[-1] == 10
     assert restored_from + 1 in logged  # the first iteration after the restore
@@ -141,8 +143,8 @@ def test_an_env_error_is_survived_through_failure_config(ray_session, tmp_path):
                     results_dir=tmp_path, preset_overrides={"total_env_steps": 1600})
     assert marker.exists()  # the fault did happen
     rows = _progress(run_dir)
-    assert int(float(rows[-1]["num_env_steps_sampled_lifetime"])) == 1600
-    evals = json.loads((run_dir / "eval_metrics.json").read_text())
+    assert int(float(rows[-1][R.ENV_STEPS])) == 1600
+    evals = json.loads((run_dir / R.EVAL_FILE).read_text())
     assert evals[-1]["training_iteration"] == 4
 
 

@@ -25,7 +25,7 @@ from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.raycast import cast_rays
 from rl_scan.envs.sim.scenarios import N_TEST
 
-RAYCAST_LIMIT = 26e6  # rays/s/core, shared/notes/raycast-limit.md (fused numba DDA, B=1)
+RAYCAST_LIMIT = 26e6  # rays/s/core of a plain numba DDA here (docs/library-facts.md)
 TARGETS = {"core": 15_000, "rllib": 5_000, "pettingzoo": 5_000}
 
 

@@ -4,7 +4,14 @@ import argparse
 
 from rl_scan.algorithms.registry import ALGORITHMS
 from rl_scan.cli import commands
-from rl_scan.results import BEST_EVAL_FILE
+from rl_scan.results import (
+    BEST_EVAL_FILE,
+    EVAL_FILE,
+    PROGRESS_FILE,
+    RUN_FILE,
+    TRAIN_TRIAL,
+    TUNE_DIR,
+)
 from rl_scan.studies import STUDIES
 from rl_scan.tuning.presets import PRESETS, PROTOCOLS
 
@@ -100,8 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser(
         "train", formatter_class=fmt, help="train POCA or PPO through Ray Tune",
         description="Train a team through Ray Tune (local by default, a Ray cluster with "
-                    "--address). Writes RESULTS/NAME/ with run.yaml (config, seed, git commit), "
-                    "eval_metrics.json, and tune/trial/ with progress.csv, TensorBoard events "
+                    f"--address). Writes RESULTS/NAME/ with {RUN_FILE} (config, seed, git "
+                    f"commit), {EVAL_FILE}, and {TUNE_DIR}/{TRAIN_TRIAL}/ with "
+                    f"{PROGRESS_FILE}, TensorBoard events "
                     "and checkpoints; "
                     "--resume continues an interrupted run from its last checkpoint.")
     tr.add_argument("--algo", choices=tuple(ALGORITHMS), default="poca",
@@ -130,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
         "adapt", formatter_class=fmt, help="adapt a trained team to a scenario (POCA)",
         description="Fine-tune a checkpoint's team (meta-trained or not) with POCA on a "
                     "scenario for a budget of env steps, evaluating on the way; a normal run "
-                    "folder whose eval_metrics.json is the adaptation curve.")
+                    f"folder whose {EVAL_FILE} is the adaptation curve.")
     ad.add_argument("checkpoint", help="a checkpoint, trial or run folder (newest checkpoint)")
     ad.add_argument("--budget", type=int, default=None,
                     help="adaptation env steps (default: the preset's budget)")

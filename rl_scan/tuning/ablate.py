@@ -3,8 +3,8 @@
 Each trial is a run of the one run driver (``driver.train_run``) with evaluation and
 checkpoints. Grid studies run the full grid of condition x seed (Optuna's
 ``GridSampler``); search studies sample with TPE. The study folder (layout in
-``rl_scan.results``) holds the Optuna study in SQLite
-(``optuna-dashboard sqlite:///RESULTS/NAME/optuna.db``). ``resume=True`` continues an
+``rl_scan.results``) holds the Optuna study in SQLite (readable by optuna-dashboard, as
+the command prints). ``resume=True`` continues an
 interrupted study: finished trials are kept, unfinished ones continue from their last
 checkpoint.
 """

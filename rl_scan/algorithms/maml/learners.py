@@ -1,4 +1,4 @@
-"""MetaPOCA's learners on RLlib's meta-learning API (notes/rllib-2.60.md section 4).
+"""MetaPOCA's learners on RLlib's meta-learning API (its 2.60 bugs: docs/library-facts.md).
 
 ``POCADifferentiableLearner`` (a ``TorchDifferentiableLearner``) adapts a parameter dict
 to one task: POCA's connectors on the support episodes, POCA's actor and critic losses

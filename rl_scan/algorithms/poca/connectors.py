@@ -4,7 +4,7 @@
 group table (every robot's observation and action at each step, stored once) and gives
 every agent row its step in that table, its own slot and the group reward. RLlib
 minibatches each module's rows independently, so each row must find its team's data on
-its own (notes/rllib-2.60.md 3.2); an index does that without copying the team's
+its own (docs/library-facts.md); an index does that without copying the team's
 observations into every robot's row.
 ``POCATargets`` (last, after ``NumpyToTensor``) runs the critic without gradients once per
 step and computes lambda-returns of the group reward bootstrapped from V and the
