@@ -89,3 +89,36 @@ def test_one_update_moves_actors_and_critic():
         after = list(learner.module[m].parameters())
         assert any(not torch.equal(a, b) for a, b in zip(after, params)), m
     assert results is not None
+
+
+@pytest.mark.parametrize("poison", [False, True])
+def test_the_lean_optimizer_step_equals_rllibs(poison):
+    """One fused finite check instead of RLlib's two per parameter, same parameters after;
+    a NaN gradient takes RLlib's own path (zeroed, with its warning)."""
+    from collections import defaultdict
+
+    from ray.rllib.core.learner.torch.torch_learner import TorchLearner
+
+    _, _, learner = _runner_and_learner((2, 2))
+    start = {pid: p.detach().clone() for pid, p in learner._params.items()}
+    gen = torch.Generator().manual_seed(0)
+    grads = {pid: torch.randn(p.shape, generator=gen) for pid, p in learner._params.items()}
+    first = next(iter(grads))
+    if poison:  # zeroed by RLlib's path: Adam's first step then leaves it in place
+        grads[first] = torch.full_like(grads[first], float("nan"))
+
+    def step(apply) -> dict:
+        with torch.no_grad():
+            for pid, p in learner._params.items():
+                p.copy_(start[pid])
+        for module_id, names in learner._module_optimizers.items():
+            for name in names:  # a fresh Adam state
+                learner.get_optimizer(module_id, name).state = defaultdict(dict)
+        apply(learner, {k: g.clone() for k, g in grads.items()})
+        return {pid: p.detach().clone() for pid, p in learner._params.items()}
+
+    lean, rllib = step(type(learner).apply_gradients), step(TorchLearner.apply_gradients)
+    for pid in start:
+        moved = not torch.equal(lean[pid], start[pid])
+        assert torch.isfinite(lean[pid]).all() and moved != (poison and pid is first)
+        assert torch.equal(lean[pid], rllib[pid])
