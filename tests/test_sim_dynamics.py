@@ -9,7 +9,7 @@ import pytest
 
 from rl_scan.envs.core import ScanCore
 from rl_scan.envs.sim.dynamics import COLLIDE_NONE, COLLIDE_OBJECT, collision_at
-from rl_scan.envs.sim.robots import QUAD
+from rl_scan.envs.sim.robots import QUAD, WHEELED
 
 DT = 2.0
 
@@ -26,7 +26,7 @@ def test_random_motion_respects_limits_and_never_enters_anything(scenario):
     core.reset(seed=1)
     w = core.world
     rng = np.random.default_rng(2)
-    wheeled_z = w.pos[w.kind == 0, 2].copy()
+    wheeled_z = w.pos[w.kind == WHEELED, 2].copy()
     collisions = 0
     for _ in range(400):
         acts = {a: rng.uniform(-1.3, 1.3, sp.shape) for a, sp in core.action_spaces.items()}
@@ -51,7 +51,7 @@ def test_random_motion_respects_limits_and_never_enters_anything(scenario):
         if not core.done:
             continue
         break
-    assert np.allclose(w.pos[w.kind == 0, 2], wheeled_z)  # wheeled robots stay on the ground
+    assert np.allclose(w.pos[w.kind == WHEELED, 2], wheeled_z)  # wheeled robots stay on the ground
     assert collisions > 0  # random driving does bump into things: the check was exercised
 
 

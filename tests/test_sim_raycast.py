@@ -7,7 +7,16 @@ import pytest
 
 from rl_scan.envs.core import ScanCore
 from rl_scan.envs.sim.raycast import BOUNDARY, MISS, cast_rays, cast_rays_brute_force
-from rl_scan.envs.sim.sensors import TAG_OTHER, TAG_ROBOT, TAG_SCANNED, TAG_UNSCANNED
+from rl_scan.envs.sim.sensors import (
+    HIT_FRACTION,
+    MISS_FLAG,
+    N_TAGS,
+    RAY_FEATURES,
+    TAG_OTHER,
+    TAG_ROBOT,
+    TAG_SCANNED,
+    TAG_UNSCANNED,
+)
 
 
 def _random_rays(rng, occ3, cell, n):
@@ -63,7 +72,7 @@ def test_dda_matches_brute_force_on_scenario_grids(scenario):
 
 
 def _ray_block(obs, ray):
-    return obs[ray * 6:(ray + 1) * 6]
+    return obs[ray * RAY_FEATURES:(ray + 1) * RAY_FEATURES]
 
 
 def _fan_index(core, robot_kind, elevation_idx, azimuth_deg):
@@ -86,18 +95,18 @@ def test_sensor_tags_unscanned_then_scanned_robot_and_miss():
     zero = {a: np.zeros(sp.shape) for a, sp in core.action_spaces.items()}
     obs, rew, *_ = core.step(zero)
     fwd = _ray_block(obs["wheeled_0"], _fan_index(core, "wheeled", 0, 0))
-    assert fwd[TAG_UNSCANNED] == 1 and fwd[:4].sum() == 1 and fwd[4] == 0
-    assert fwd[5] == pytest.approx((5.0 - 4.0) / 2.0)  # 1 m of a 2 m range
+    assert fwd[TAG_UNSCANNED] == 1 and fwd[:N_TAGS].sum() == 1 and fwd[MISS_FLAG] == 0
+    assert fwd[HIT_FRACTION] == pytest.approx((5.0 - 4.0) / 2.0)  # 1 m of a 2 m range
     assert rew["wheeled_0"] > 0
     obs, rew, *_ = core.step(zero)
     fwd = _ray_block(obs["wheeled_0"], _fan_index(core, "wheeled", 0, 0))
     assert fwd[TAG_SCANNED] == 1 and rew["wheeled_0"] == 0  # nothing new in view
     back = _ray_block(obs["wheeled_0"], _fan_index(core, "wheeled", 0, 180))
     assert back[TAG_ROBOT] == 1
-    assert back[5] == pytest.approx((1.0 - w.radius[1]) / 2.0)
+    assert back[HIT_FRACTION] == pytest.approx((1.0 - w.radius[1]) / 2.0)
     # wheeled_1's backward ray: the arena wall is 3 m away, beyond the 2 m range -> miss.
     miss = _ray_block(obs["wheeled_1"], _fan_index(core, "wheeled", 0, 180))
-    assert miss[:4].sum() == 0 and miss[4] == 1 and miss[5] == 1
+    assert miss[:N_TAGS].sum() == 0 and miss[MISS_FLAG] == 1 and miss[HIT_FRACTION] == 1
 
 
 def test_floor_and_walls_are_tag_other():
@@ -109,6 +118,6 @@ def test_floor_and_walls_are_tag_other():
     w.yaw[q], w.pitch[q] = np.pi, 0.0  # facing -x
     obs, *_ = core.step({a: np.zeros(sp.shape) for a, sp in core.action_spaces.items()})
     wall = _ray_block(obs["quad_0"], _fan_index(core, "quad", 1, 0))  # elevation 0, forward
-    assert wall[TAG_OTHER] == 1 and wall[5] == pytest.approx(1.0 / 3.5)
+    assert wall[TAG_OTHER] == 1 and wall[HIT_FRACTION] == pytest.approx(1.0 / 3.5)
     down = _ray_block(obs["quad_0"], _fan_index(core, "quad", 0, 90))  # -30 deg, to the side
-    assert down[TAG_OTHER] == 1 and down[5] == pytest.approx(2.0 / 3.5)  # 1 m / sin 30
+    assert down[TAG_OTHER] == 1 and down[HIT_FRACTION] == pytest.approx(2.0 / 3.5)  # 1 m / sin 30

@@ -19,7 +19,7 @@ import numpy as np
 from rl_scan import metrics as M
 from rl_scan.envs.observations import action_spaces, kind_of, observation_spaces
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
-from rl_scan.envs.sim.robots import KINDS
+from rl_scan.envs.sim.robots import ACTION_WIDTH, KINDS
 from rl_scan.envs.sim.scenarios import N_TRAIN, load_scenario, parse_scenario_name
 from rl_scan.envs.sim.world import World
 
@@ -51,7 +51,7 @@ class ScanCore:
         self._action_shapes = [self.action_spaces[aid].shape for aid in self.agent_ids]
         self._kinds = np.array([kind_of(aid) for aid in self.agent_ids])
         self._worlds: OrderedDict[str, World] = OrderedDict()
-        self._actions = np.zeros((len(self.agent_ids), 5))
+        self._actions = np.zeros((len(self.agent_ids), ACTION_WIDTH))
         self.np_random = np.random.default_rng()
         self.scenario_name = self.config.scenario
         first = "train:0" if self.scenario_name == "train:*" else self.scenario_name
@@ -103,7 +103,7 @@ class ScanCore:
         self.scenario_name = parse_scenario_name(str(name))
 
     def to_action_matrix(self, action_dict: dict[str, Any]) -> np.ndarray:
-        """Validate per-agent actions and place them in the simulator's (n, 5) matrix.
+        """Validate per-agent actions and place them in the simulator's (n, ACTION_WIDTH) matrix.
 
         A kind's action is a prefix of the simulator's (forward, left, yaw, up, pitch).
         Missing agents act with zeros; actions are clipped to [-1, 1] (as ML-Agents does).

@@ -23,8 +23,8 @@ import math
 import numpy as np
 
 from rl_scan.envs.core import ScanCore
-from rl_scan.envs.sim.dynamics import COLLIDE_NONE, collision_at
-from rl_scan.envs.sim.robots import QUAD
+from rl_scan.envs.sim.dynamics import COLLIDE_NONE, SUBSTEP_RADII, collision_at
+from rl_scan.envs.sim.robots import QUAD, WHEELED
 
 TURNS = np.radians([0, 30, 60, 90, 120, 150, 180])
 
@@ -55,7 +55,7 @@ class GreedyTeam:
         vp_q[~side] = cells.centre[~side] + np.array([0.0, 0.0, 1.5])
         vp_q[:, 2] = np.clip(vp_q[:, 2], cfg.quad.radius + 0.3,
                              w.grid.extent[2] - cfg.quad.radius - 0.1)
-        self.viewpoint = {0: vp_w, QUAD: vp_q}
+        self.viewpoint = {WHEELED: vp_w, QUAD: vp_q}
         self.cruise = float(w.obj_top.max() + 0.8) if w.n_objects else 2.0
         ext = w.grid.extent
         self.waypoints = np.array([[ext[0] * fx, ext[1] * fy] for fx in (0.25, 0.5, 0.75)
@@ -103,7 +103,7 @@ class GreedyTeam:
             self.visited[:] = False
             free = np.arange(len(self.waypoints))
         p = self.waypoints[free[np.argmin(np.linalg.norm(self.waypoints[free] - pos, axis=1))]]
-        z = w.pos[i, 2] if kind == 0 else self.cruise
+        z = w.pos[i, 2] if kind == WHEELED else self.cruise
         return np.array([p[0], p[1], z]), None
 
     def _pick(self, i: int, kind: int) -> int:
@@ -199,7 +199,7 @@ class GreedyTeam:
         g = w.grid
         pos = w.pos[i]
         length = math.sqrt(move_xy @ move_xy + dz * dz)
-        n_sub = max(1, int(math.ceil(length / (0.25 * w.radius[i]))))
+        n_sub = max(1, int(math.ceil(length / (SUBSTEP_RADII * w.radius[i]))))
         for k in range(1, n_sub + 1):
             f = k / n_sub
             p = pos + f * np.array([move_xy[0], move_xy[1], dz])

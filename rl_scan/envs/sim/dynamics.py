@@ -2,7 +2,7 @@
 
 Each step a robot turns (yaw, and pitch for quads, clipped to its limits), then moves with
 its commanded body-frame velocity for ``dt``. The straight-line motion is checked at
-sub-steps no longer than a quarter of the body radius; if any sub-step would touch an
+sub-steps no longer than ``SUBSTEP_RADII`` body radii; if any sub-step would touch an
 object voxel, another robot or the arena bounds, the whole translation is blocked (the
 robot stays where it was, its velocity becomes 0) and the collision is counted.
 Rotations never collide (the body is a sphere).
@@ -14,7 +14,10 @@ import math
 
 import numba as nb
 
+from rl_scan.envs.sim.robots import FORWARD, LEFT, PITCH, UP, YAW
+
 COLLIDE_NONE, COLLIDE_OBJECT, COLLIDE_ROBOT, COLLIDE_BOUNDS = 0, 1, 2, 3
+SUBSTEP_RADII = 0.25  # longest collision-check sub-step, in body radii: no voxel is skipped
 
 
 @nb.njit(cache=True)
@@ -55,25 +58,29 @@ def collision_at(occ, nx, ny, nz, cell, pos, radius, me, x, y, z):
 
 
 @nb.njit(cache=True)
-def move_robots(occ, nx, ny, nz, cell, actions, dt, kind, pos, vel, yaw, pitch, radius,
-                max_speed, max_vz, max_yaw_rate, max_pitch_rate, pitch_lo, pitch_hi,
-                collided):
-    """Apply actions (n, 5) = (forward, left, yaw, up, pitch) in robot order.
+def move_robots(grid, team, state, actions, dt, collided):
+    """Apply actions (n, ACTION_WIDTH) = (forward, left, yaw, up, pitch) in robot order.
 
+    Robots move one after another, so a robot sees its teammates' new positions.
     Collision codes (COLLIDE_*) go to ``collided``.
     """
+    occ, cell = grid.occ, grid.cell
+    nx, ny, nz = grid.shape[0], grid.shape[1], grid.shape[2]
+    pos, vel, yaw, pitch = state.pos, state.vel, state.yaw, state.pitch
+    radius = team.radius
     for i in range(pos.shape[0]):
-        k = kind[i]
+        k = team.kind[i]
         a = actions[i]
-        y = yaw[i] + a[2] * max_yaw_rate[k] * dt
+        y = yaw[i] + a[YAW] * team.max_yaw_rate[k] * dt
         yaw[i] = math.atan2(math.sin(y), math.cos(y))
-        pitch[i] = min(max(pitch[i] + a[4] * max_pitch_rate[k] * dt, pitch_lo[k]), pitch_hi[k])
+        pitch[i] = min(max(pitch[i] + a[PITCH] * team.max_pitch_rate[k] * dt, team.pitch_lo[k]),
+                       team.pitch_hi[k])
         c, s = math.cos(yaw[i]), math.sin(yaw[i])
-        fwd, left = a[0] * max_speed[k], a[1] * max_speed[k]
-        vx, vy, vz = c * fwd - s * left, s * fwd + c * left, a[3] * max_vz[k]
+        fwd, left = a[FORWARD] * team.max_speed[k], a[LEFT] * team.max_speed[k]
+        vx, vy, vz = c * fwd - s * left, s * fwd + c * left, a[UP] * team.max_vertical_speed[k]
         dx, dy, dz = vx * dt, vy * dt, vz * dt
         length = math.sqrt(dx * dx + dy * dy + dz * dz)
-        n_sub = max(1, int(math.ceil(length / (0.25 * radius[i]))))
+        n_sub = max(1, int(math.ceil(length / (SUBSTEP_RADII * radius[i]))))
         code = COLLIDE_NONE
         for sub in range(1, n_sub + 1):
             f = sub / n_sub

@@ -5,17 +5,24 @@ axis, with the floor at z = 0. Flat voxel index = (i * ny + j) * nz + k (C order
 Faces are numbered 0..5 = -x, +x, -y, +y, -z, +z. A cell is an object-voxel face whose
 neighbour is free (or outside the grid), except -z faces (the paper tiles five faces of
 an object, never its underside): a 6x6x6 cube has 4*36 + 36 = 180 cells.
+``VoxelGrid`` and ``Objects`` are these facts as the numba kernels read them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
+NEG_X, POS_X, NEG_Y, POS_Y, NEG_Z, POS_Z = range(6)  # face ids: 2 * axis + (normal > 0)
+N_FACES = 6
+DOWN_FACE = NEG_Z
+NO_FACE = -1  # a ray that hit nothing, or started inside an object voxel
+NO_CELL = -1  # an object-voxel face that is not a cell (hidden, or downward)
+FREE = -1  # the slot (and object id) of a free voxel
 FACE_NORMALS = np.array(
     [[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)
-DOWN_FACE = 4
 
 
 @dataclass(frozen=True)
@@ -78,3 +85,38 @@ def exposed_cells(object_id: np.ndarray, cell_size: float) -> Cells:
     obj = object_id.reshape(-1)[voxel]
     return Cells(voxel=voxel.astype(np.int64), face=face.astype(np.int64),
                  centre=centre, obj=obj.astype(np.int64))
+
+
+class VoxelGrid(NamedTuple):
+    """The arena's occupancy for raycasting and collisions."""
+
+    occ: np.ndarray
+    """(nx * ny * nz,) uint8, 1 = object voxel, flat index as in the module doc."""
+    shape: np.ndarray
+    """(3,) int64 voxel counts (nx, ny, nz)."""
+    cell: float
+    """Voxel edge, metres."""
+    box: np.ndarray
+    """(6,) int64 bounds (i0, j0, k0, i1, j1, k1) of all object voxels, see occupied_box."""
+    extent: np.ndarray
+    """(3,) arena size in metres; observations are positions divided by it."""
+
+
+class Objects(NamedTuple):
+    """What a ray hit counts for, and what the object channel reports about each object.
+
+    Occupied voxels are numbered by "slot" so that per-face tables stay small.
+    """
+
+    voxel_slot: np.ndarray
+    """(nx * ny * nz,) int64 slot of each voxel, FREE where there is no object."""
+    slot_object: np.ndarray
+    """(slots,) int64 object id of each occupied voxel."""
+    slot_cells: np.ndarray
+    """(slots, N_FACES) int64 cell id of each face of each occupied voxel, or NO_CELL."""
+    n_cells: np.ndarray
+    """(objects,) int64 cells per object."""
+    centre: np.ndarray
+    """(objects, 3) centre of the object's voxels, metres."""
+    top: np.ndarray
+    """(objects,) height of the object's top, metres."""

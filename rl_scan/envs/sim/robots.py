@@ -2,21 +2,26 @@
 
 Actions are in [-1, 1] per dimension and scaled by these limits:
 wheeled = (forward, left, yaw rate); quad = (forward, left, yaw rate, up, pitch rate).
-Inside the simulator every robot gets this 5-vector (wheeled: the first 3; up = pitch = 0).
-Body frame: x forward, y left, z up; pitch > 0 tilts the nose (and the sensor fan) up.
+Inside the simulator every robot gets this ``ACTION_WIDTH``-vector (wheeled: the first 3;
+up = pitch = 0). Body frame: x forward, y left, z up; pitch > 0 tilts the nose (and the
+sensor fan) up. ``Team`` holds the kinds' limits as tables the kernels index by kind.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from rl_scan.config import check_range, fail
 
 KINDS = ("wheeled", "quad")
-WHEELED, QUAD = 0, 1
-ACTION_DIMS = {"wheeled": 3, "quad": 5}
+WHEELED, QUAD = 0, 1  # kind ids: positions in KINDS and rows of the Team tables
+FORWARD, LEFT, YAW, UP, PITCH = range(5)  # columns of the simulator's action matrix
+ACTION_WIDTH = PITCH + 1
+ACTION_DIMS = {"wheeled": YAW + 1, "quad": ACTION_WIDTH}  # each kind's action is a prefix
 
 
 @dataclass(frozen=True)
@@ -87,3 +92,50 @@ def default_quad() -> RobotSpec:
     return RobotSpec(max_speed=0.1, max_vertical_speed=0.1, max_yaw_rate=3.0,
                      max_pitch_rate=3.0, pitch_limits=(-60.0, 30.0), radius=0.25, altitude=1.5,
                      sensor_range=3.5, elevations=(-30.0, 0.0, 30.0))
+
+
+class Team(NamedTuple):
+    """The robots' fixed parameters: per-robot arrays, and per-kind tables indexed by kind."""
+
+    kind: np.ndarray
+    """(n,) int64 kind id (WHEELED or QUAD) of each robot."""
+    radius: np.ndarray
+    """(n,) collision sphere radius of each robot, metres."""
+    max_speed: np.ndarray
+    """(kinds,) forward/left speed limit, m/s; also the observation's velocity scale."""
+    max_vertical_speed: np.ndarray
+    """(kinds,) up/down speed limit, m/s (0: the kind cannot climb)."""
+    max_yaw_rate: np.ndarray
+    """(kinds,) rad/s."""
+    max_pitch_rate: np.ndarray
+    """(kinds,) rad/s."""
+    pitch_lo: np.ndarray
+    """(kinds,) lowest pitch, radians."""
+    pitch_hi: np.ndarray
+    """(kinds,) highest pitch, radians."""
+    sensor_range: np.ndarray
+    """(kinds,) ray length, metres."""
+    n_rays: np.ndarray
+    """(kinds,) int64 rays in the kind's fan."""
+    ray_dirs: np.ndarray
+    """(kinds, max rays, 3) body-frame unit ray directions; rows past n_rays are 0."""
+
+
+def build_team(specs: Sequence[RobotSpec], kind: np.ndarray) -> Team:
+    """The Team of robots of the given kind ids, from one RobotSpec per kind (KINDS order)."""
+
+    def table(values) -> np.ndarray:
+        return np.array(list(values), dtype=np.float64)
+
+    ray_dirs = np.zeros((len(specs), max(s.n_rays for s in specs), 3))
+    for k, s in enumerate(specs):
+        ray_dirs[k, :s.n_rays] = s.ray_directions()
+    return Team(kind=kind, radius=table(specs[k].radius for k in kind),
+                max_speed=table(s.max_speed for s in specs),
+                max_vertical_speed=table(s.max_vertical_speed for s in specs),
+                max_yaw_rate=table(s.max_yaw_rate for s in specs),
+                max_pitch_rate=table(s.max_pitch_rate for s in specs),
+                pitch_lo=table(np.radians(s.pitch_limits[0]) for s in specs),
+                pitch_hi=table(np.radians(s.pitch_limits[1]) for s in specs),
+                sensor_range=table(s.sensor_range for s in specs),
+                n_rays=np.array([s.n_rays for s in specs], dtype=np.int64), ray_dirs=ray_dirs)

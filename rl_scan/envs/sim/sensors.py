@@ -14,25 +14,35 @@ import math
 
 import numba as nb
 
+from rl_scan.envs.sim.grid import NO_CELL, NO_FACE
 from rl_scan.envs.sim.raycast import BOUNDARY, MISS, cast_ray
+from rl_scan.envs.sim.robots import QUAD
 
 TAG_UNSCANNED, TAG_SCANNED, TAG_ROBOT, TAG_OTHER = 0, 1, 2, 3
 N_TAGS = 4
+NO_TAG = -1  # a miss: no one-hot entry is set
+MISS_FLAG, HIT_FRACTION = N_TAGS, N_TAGS + 1  # columns of a ray block after the tags
 RAY_FEATURES = N_TAGS + 2
+HIT_ROBOT = min(MISS, BOUNDARY) - 1  # hit code of a robot sphere, beside cast_ray's codes
 
 
 @nb.njit(cache=True)
-def sense(occ, nx, ny, nz, cell, box, voxel_slot, slot_obj, slot_cells, cell_state, obj_left,
-          obj_seen, obj_seen_by_quad, kind, pos, yaw, pitch, radius, ray_dirs, n_rays,
-          sensor_range, quad_kind, scan, obs, new_cells, near):
-    """Cast all rays, write ray blocks to ``obs[i, :n_rays*6]``, count newly scanned cells."""
+def sense(grid, objects, team, state, buffers, scan):
+    """Cast all rays, write ray blocks to ``obs[i, :n_rays * RAY_FEATURES]``, count new cells.
+
+    Each ray scans (with ``scan``) the cell it hits first and marks the hit object as seen
+    (by a quad too, for the object channel).
+    """
+    pos, yaw, pitch, radius = state.pos, state.yaw, state.pitch, team.radius
+    cell_state, obs, new_cells = state.cell_state, buffers.obs, buffers.new_cells
+    near = buffers.near
     n = pos.shape[0]
     for i in range(n):
-        k = kind[i]
+        k = team.kind[i]
         cy, sy = math.cos(yaw[i]), math.sin(yaw[i])
         cp, sp = math.cos(pitch[i]), math.sin(pitch[i])
         ox, oy, oz = pos[i, 0], pos[i, 1], pos[i, 2]
-        rng = sensor_range[k]
+        rng = team.sensor_range[k]
         new_cells[i] = 0
         n_near = 0  # only robots within reach of this fan are tested per ray
         for o in range(n):
@@ -42,12 +52,12 @@ def sense(occ, nx, ny, nz, cell, box, voxel_slot, slot_obj, slot_cells, cell_sta
                 if qx * qx + qy * qy + qz * qz < reach * reach:
                     near[n_near] = o
                     n_near += 1
-        for r in range(n_rays[k]):
-            lx, ly, lz = ray_dirs[k, r, 0], ray_dirs[k, r, 1], ray_dirs[k, r, 2]
+        for r in range(team.n_rays[k]):
+            lx, ly, lz = team.ray_dirs[k, r, 0], team.ray_dirs[k, r, 1], team.ray_dirs[k, r, 2]
             bx, bz = lx * cp - lz * sp, lx * sp + lz * cp
             dx, dy, dz = bx * cy - ly * sy, bx * sy + ly * cy, bz
-            t, code, face = cast_ray(occ, nx, ny, nz, cell, box, ox, oy, oz, dx, dy, dz, rng)
-            tag = -1
+            t, code, face = cast_ray(grid, (ox, oy, oz), (dx, dy, dz), rng)
+            tag = NO_TAG
             if code == BOUNDARY:
                 tag = TAG_OTHER
             for m in range(n_near):  # other robots are spheres
@@ -58,15 +68,15 @@ def sense(occ, nx, ny, nz, cell, box, voxel_slot, slot_obj, slot_cells, cell_sta
                 if disc >= 0.0:
                     to = -b - math.sqrt(disc)
                     if 0.0 < to < t:
-                        t, code, tag = to, MISS - 10, TAG_ROBOT
+                        t, code, tag = to, HIT_ROBOT, TAG_ROBOT
             if code >= 0:
-                slot = voxel_slot[code]
-                obj = slot_obj[slot]
-                obj_seen[obj] = 1
-                if k == quad_kind:
-                    obj_seen_by_quad[obj] = 1
-                c = slot_cells[slot, face] if face >= 0 else -1
-                if c < 0:
+                slot = objects.voxel_slot[code]
+                obj = objects.slot_object[slot]
+                state.obj_seen[obj] = 1
+                if k == QUAD:
+                    state.obj_seen_by_quad[obj] = 1
+                c = objects.slot_cells[slot, face] if face != NO_FACE else NO_CELL
+                if c == NO_CELL:
                     tag = TAG_OTHER
                 elif cell_state[c]:
                     tag = TAG_SCANNED
@@ -74,12 +84,12 @@ def sense(occ, nx, ny, nz, cell, box, voxel_slot, slot_obj, slot_cells, cell_sta
                     tag = TAG_UNSCANNED
                     if scan:
                         cell_state[c] = 1
-                        obj_left[obj] -= 1
+                        state.obj_left[obj] -= 1
                         new_cells[i] += 1
-            base = r * 6
+            base = r * RAY_FEATURES
             for q in range(N_TAGS):
                 obs[i, base + q] = 0.0
-            if tag >= 0:
+            if tag != NO_TAG:
                 obs[i, base + tag] = 1.0
-            obs[i, base + 4] = 1.0 if code == MISS else 0.0
-            obs[i, base + 5] = t / rng
+            obs[i, base + MISS_FLAG] = 1.0 if code == MISS else 0.0
+            obs[i, base + HIT_FRACTION] = t / rng

@@ -3,83 +3,177 @@
 ``World.step(actions)`` runs ``step_world``: kinematics with the safety set, all ray
 fans, cell scanning, rewards and the whole observation matrix, without Python per robot
 or per ray. Robots are ordered as the team's agent ids (wheeled first, then quads).
+The kernels share six records of arrays, built once per world and updated in place:
+``VoxelGrid`` and ``Objects`` (the scene), ``Team`` (fixed robot parameters), ``State``
+(what a step changes), ``ObsColumns`` (the observation layout) and ``Buffers`` (per-step
+input, outputs and scratch).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
 
 from rl_scan.config import ConfigError
-from rl_scan.envs.sim.comms import OBJECT_FEATURES, scheme_flags, write_state_and_comm
+from rl_scan.envs.sim.comms import (
+    MATE_FEATURES,
+    NO_BLOCK,
+    OBJECT_FEATURES,
+    OWN_FEATURES,
+    scheme_shares,
+    write_state_and_comm,
+)
 from rl_scan.envs.sim.dynamics import COLLIDE_NONE, collision_at, move_robots
 from rl_scan.envs.sim.env_config import EnvConfig
-from rl_scan.envs.sim.grid import Cells, GridShape, exposed_cells
+from rl_scan.envs.sim.grid import (
+    FREE,
+    N_FACES,
+    NO_CELL,
+    Cells,
+    GridShape,
+    Objects,
+    VoxelGrid,
+    exposed_cells,
+)
 from rl_scan.envs.sim.objects import voxelize
 from rl_scan.envs.sim.raycast import occupied_box
-from rl_scan.envs.sim.robots import KINDS, QUAD, WHEELED
+from rl_scan.envs.sim.robots import ACTION_WIDTH, KINDS, QUAD, WHEELED, Team, build_team
 from rl_scan.envs.sim.scenarios import Scenario
 from rl_scan.envs.sim.sensors import RAY_FEATURES, sense
 
-OWN_FEATURES = {"wheeled": 8, "quad": 9}
+
+class State(NamedTuple):
+    """Everything a step changes and the next step reads; reset() rewrites it."""
+
+    pos: np.ndarray
+    """(n, 3) robot positions, metres."""
+    vel: np.ndarray
+    """(n, 3) world-frame velocities of the last step, m/s."""
+    yaw: np.ndarray
+    """(n,) radians in [-pi, pi]."""
+    pitch: np.ndarray
+    """(n,) radians."""
+    cell_state: np.ndarray
+    """(cells,) uint8, 1 = scanned."""
+    obj_left: np.ndarray
+    """(objects,) int64 unscanned cells per object."""
+    obj_seen: np.ndarray
+    """(objects,) uint8, 1 = some ray has hit the object."""
+    obj_seen_by_quad: np.ndarray
+    """(objects,) uint8, 1 = some quad's ray has hit it (the object channel reports these)."""
+
+
+class ObsColumns(NamedTuple):
+    """Where each robot's blocks start in its observation row, and what the channels carry."""
+
+    own: np.ndarray
+    """(n,) int64 column of the own-state block (after the ray blocks)."""
+    comm: np.ndarray
+    """(n,) int64 column of the teammates' block."""
+    objects: np.ndarray
+    """(n,) int64 column of the object-information block, or NO_BLOCK."""
+    shares: np.ndarray
+    """(kinds, 2) int64 comm scheme switches, see ``comms.scheme_shares``."""
+    object_slots: int
+    """Objects described by the object-information block."""
+
+
+class Buffers(NamedTuple):
+    """Arrays a step overwrites: its input, its outputs and scratch space (no state)."""
+
+    actions: np.ndarray
+    """(n, ACTION_WIDTH) actions in [-1, 1]."""
+    obs: np.ndarray
+    """(n, widest observation) float32 observation rows."""
+    new_cells: np.ndarray
+    """(n,) int64 cells each robot scanned this step."""
+    collided: np.ndarray
+    """(n,) int64 COLLIDE_* code of each robot's move this step."""
+    near: np.ndarray
+    """(n,) int64 scratch: robots within reach of a fan."""
+    object_dist: np.ndarray
+    """(max(objects, 1),) scratch: squared distances to the objects."""
 
 
 @dataclass(frozen=True)
 class ObsLayout:
-    """Observation size per kind and the column offsets of each robot's blocks."""
+    """Observation size per kind and the kernels' view of the layout."""
 
     dims: dict[str, int]
-    own_off: np.ndarray
-    comm_off: np.ndarray
-    obj_off: np.ndarray  # -1: no object-information block
+    columns: ObsColumns
 
 
 def observation_layout(config: EnvConfig) -> ObsLayout:
-    """Sizes: rays*6 + own state + teammates' shared info + object info (wheeled only)."""
-    flags = scheme_flags(config.comm_scheme)
+    """Sizes: rays + own state + teammates' shared info + object info (wheeled only)."""
+    shares = scheme_shares(config.comm_scheme)
     counts = {"wheeled": config.team.wheeled, "quad": config.team.quad}
-    per_mate = {"wheeled": 3 * (flags[0] + flags[1]), "quad": 3 * (flags[2] + flags[3])}
-    dims, offs = {}, {}
+    per_mate = {kind: MATE_FEATURES * int(shares[k].sum()) for k, kind in enumerate(KINDS)}
+    dims, own, comm, objects = {}, {}, {}, {}
     for kind in KINDS:
-        spec = getattr(config, kind)
-        rays = spec.n_rays * RAY_FEATURES
         mates = sum(per_mate[k] * (counts[k] - (k == kind)) for k in KINDS)
         has_obj = kind == "wheeled" and config.object_info and counts["quad"] > 0
+        own[kind] = getattr(config, kind).n_rays * RAY_FEATURES
+        comm[kind] = own[kind] + OWN_FEATURES[kind]
+        objects[kind] = comm[kind] + mates if has_obj else NO_BLOCK
         obj = OBJECT_FEATURES * config.object_info_slots if has_obj else 0
-        own = rays
-        comm = own + OWN_FEATURES[kind]
-        dims[kind] = int(comm + mates + obj)
-        offs[kind] = (own, comm, comm + mates if has_obj else -1)
+        dims[kind] = int(comm[kind] + mates + obj)
     kinds = ["wheeled"] * counts["wheeled"] + ["quad"] * counts["quad"]
-    return ObsLayout(dims=dims,
-                     own_off=np.array([offs[k][0] for k in kinds], dtype=np.int64),
-                     comm_off=np.array([offs[k][1] for k in kinds], dtype=np.int64),
-                     obj_off=np.array([offs[k][2] for k in kinds], dtype=np.int64))
+
+    def per_robot(column: dict[str, int]) -> np.ndarray:
+        return np.array([column[k] for k in kinds], dtype=np.int64)
+
+    return ObsLayout(dims=dims, columns=ObsColumns(
+        own=per_robot(own), comm=per_robot(comm), objects=per_robot(objects), shares=shares,
+        object_slots=config.object_info_slots))
 
 
 @nb.njit(cache=True)
-def step_world(occ, box, shape, cell, actions, dt, kind, pos, vel, yaw, pitch, radius, kin,
-               voxel_slot, slot_obj, slot_cells, cell_state, obj_left, obj_seen,
-               obj_seen_by_quad, ray_dirs, n_rays, sensor_range, move, scan, obs, new_cells,
-               collided, own_off, comm_off, obj_off, extent, vnorm, vznorm, flags, obj_centre,
-               obj_top, obj_total, n_slots, dist_buf, near):
+def step_world(grid, objects, team, state, columns, buffers, dt, move, scan):
     """One world step (or, with move=False and scan=False, just the observation)."""
-    nx, ny, nz = shape[0], shape[1], shape[2]
     if move:
-        move_robots(occ, nx, ny, nz, cell, actions, dt, kind, pos, vel, yaw, pitch, radius,
-                    kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], collided)
-    sense(occ, nx, ny, nz, cell, box, voxel_slot, slot_obj, slot_cells, cell_state, obj_left,
-          obj_seen, obj_seen_by_quad, kind, pos, yaw, pitch, radius, ray_dirs, n_rays,
-          sensor_range, 1, scan, obs, new_cells, near)
-    write_state_and_comm(obs, own_off, comm_off, obj_off, kind, pos, vel, yaw, pitch, extent,
-                         vnorm, vznorm, 1, flags, obj_seen_by_quad, obj_centre, obj_top,
-                         obj_left, obj_total, n_slots, dist_buf)
+        move_robots(grid, team, state, buffers.actions, dt, buffers.collided)
+    sense(grid, objects, team, state, buffers, scan)
+    write_state_and_comm(grid, objects, team, state, columns, buffers)
+
+
+@nb.njit(cache=True)
+def step_world_fields(records, dt, move, scan):
+    """``step_world`` with its six records passed as plain tuples of their fields.
+
+    Numba's dispatcher types a namedtuple argument by spelling out its class and field
+    names on every call: about 0.1 us a field, 3-4 us (over 10 %) of a step here. A plain
+    tuple is typed from its items alone, and rebuilding the records here costs nothing.
+    """
+    grid, objects, team, state, columns, buffers = records
+    step_world(VoxelGrid(*grid), Objects(*objects), Team(*team), State(*state),
+               ObsColumns(*columns), Buffers(*buffers), dt, move, scan)
+
+
+def _alias(record: str, field: str) -> property:
+    """A read-only attribute forwarding to a record's field (the array itself, not a copy)."""
+    return property(lambda world: getattr(getattr(world, record), field),
+                    doc=f"``{record}.{field}``, under the name the env's readers use.")
 
 
 class World:
     """A scenario voxelized into the arena plus the team's state; reset() then step()."""
+
+    # Record fields under the names the adapters, scripted teams, renderer and tests read.
+    occ, shape_arr = _alias("voxels", "occ"), _alias("voxels", "shape")
+    obj_total, obj_centre = _alias("objects", "n_cells"), _alias("objects", "centre")
+    obj_top = _alias("objects", "top")
+    kind, radius = _alias("team", "kind"), _alias("team", "radius")
+    ray_dirs, n_rays = _alias("team", "ray_dirs"), _alias("team", "n_rays")
+    sensor_range = _alias("team", "sensor_range")
+    pos, vel = _alias("state", "pos"), _alias("state", "vel")
+    yaw, pitch = _alias("state", "yaw"), _alias("state", "pitch")
+    cell_state, obj_left = _alias("state", "cell_state"), _alias("state", "obj_left")
+    obj_seen, obj_seen_by_quad = _alias("state", "obj_seen"), _alias("state", "obj_seen_by_quad")
+    obs, new_cells = _alias("buffers", "obs"), _alias("buffers", "new_cells")
+    collided = _alias("buffers", "collided")
 
     def __init__(self, config: EnvConfig, scenario: Scenario):
         self.config, self.scenario = config, scenario
@@ -87,20 +181,34 @@ class World:
         self.grid = GridShape(*shape, cell_size=config.cell_size)
         self.object_id = self._voxelize_objects()
         self.cells: Cells = exposed_cells(self.object_id, config.cell_size)
-        self._build_lookup()
+        self.n_objects = len(self.scenario.objects)
+        self.voxels = self._build_voxels()
+        self.objects = self._build_objects()
         self._build_team()
         self.layout = observation_layout(config)
-        self.obs = np.zeros((self.n_robots, max(self.layout.dims.values())), dtype=np.float32)
-        self.new_cells = np.zeros(self.n_robots, dtype=np.int64)
-        self.collided = np.zeros(self.n_robots, dtype=np.int64)
-        self._dist_buf = np.zeros(max(self.n_objects, 1))
-        self._near = np.zeros(self.n_robots, dtype=np.int64)
-        self._args = None
+        n = self.n_robots
+        self.state = State(pos=np.zeros((n, 3)), vel=np.zeros((n, 3)), yaw=np.zeros(n),
+                           pitch=np.zeros(n),
+                           cell_state=np.zeros(len(self.cells), dtype=np.uint8),
+                           obj_left=self.objects.n_cells.copy(),
+                           obj_seen=np.zeros(self.n_objects, dtype=np.uint8),
+                           obj_seen_by_quad=np.zeros(self.n_objects, dtype=np.uint8))
+        width = max(self.layout.dims.values())
+        self.buffers = Buffers(actions=np.zeros((n, ACTION_WIDTH)),
+                               obs=np.zeros((n, width), dtype=np.float32),
+                               new_cells=np.zeros(n, dtype=np.int64),
+                               collided=np.zeros(n, dtype=np.int64),
+                               near=np.zeros(n, dtype=np.int64),
+                               object_dist=np.zeros(max(self.n_objects, 1)))
+        # Arrays are updated in place, so the kernel's arguments are built once.
+        self._fields = tuple(tuple(record) for record in (
+            self.voxels, self.objects, self.team, self.state, self.layout.columns,
+            self.buffers))
 
     # ----------------------------------------------------------------- building
     def _voxelize_objects(self) -> np.ndarray:
         grid, extent = self.grid, self.grid.extent
-        object_id = np.full(grid.shape, -1, dtype=np.int64)
+        object_id = np.full(grid.shape, FREE, dtype=np.int64)
         flat = object_id.reshape(-1)
         for i, spec in enumerate(self.scenario.objects):
             r = np.hypot(spec.size[0], spec.size[1]) / 2 if spec.yaw % 90 else 0.0
@@ -123,27 +231,29 @@ class World:
             flat[vox] = i
         return object_id
 
-    def _build_lookup(self) -> None:
+    def _build_voxels(self) -> VoxelGrid:
+        occ = (self.object_id.reshape(-1) >= 0).astype(np.uint8)
+        return VoxelGrid(occ=occ, shape=np.array(self.grid.shape, dtype=np.int64),
+                         cell=self.grid.cell_size, box=occupied_box(occ, *self.grid.shape),
+                         extent=self.grid.extent)
+
+    def _build_objects(self) -> Objects:
         flat = self.object_id.reshape(-1)
-        self.occ = (flat >= 0).astype(np.uint8)
         slots = np.flatnonzero(flat >= 0)
-        self.voxel_slot = np.full(flat.shape, -1, dtype=np.int64)
-        self.voxel_slot[slots] = np.arange(len(slots))
-        self.slot_obj = flat[slots].astype(np.int64)
-        self.slot_cells = np.full((len(slots), 6), -1, dtype=np.int64)
-        self.slot_cells[self.voxel_slot[self.cells.voxel], self.cells.face] = np.arange(
-            len(self.cells))
-        self.n_objects = len(self.scenario.objects)
-        self.obj_total = np.bincount(self.cells.obj, minlength=self.n_objects).astype(np.int64)
+        voxel_slot = np.full(flat.shape, FREE, dtype=np.int64)
+        voxel_slot[slots] = np.arange(len(slots))
+        slot_object = flat[slots].astype(np.int64)
+        slot_cells = np.full((len(slots), N_FACES), NO_CELL, dtype=np.int64)
+        slot_cells[voxel_slot[self.cells.voxel], self.cells.face] = np.arange(len(self.cells))
+        n_cells = np.bincount(self.cells.obj, minlength=self.n_objects).astype(np.int64)
         idx = np.stack(np.unravel_index(slots, self.grid.shape), axis=1)
-        self.obj_centre = np.zeros((self.n_objects, 3))
-        self.obj_top = np.zeros(self.n_objects)
+        centre, top = np.zeros((self.n_objects, 3)), np.zeros(self.n_objects)
         for o in range(self.n_objects):
-            mine = idx[self.slot_obj == o]
-            self.obj_centre[o] = (mine.mean(axis=0) + 0.5) * self.grid.cell_size
-            self.obj_top[o] = (mine[:, 2].max() + 1) * self.grid.cell_size
-        self.shape_arr = np.array(self.grid.shape, dtype=np.int64)
-        self.box = occupied_box(self.occ, *self.grid.shape)
+            mine = idx[slot_object == o]
+            centre[o] = (mine.mean(axis=0) + 0.5) * self.grid.cell_size
+            top[o] = (mine[:, 2].max() + 1) * self.grid.cell_size
+        return Objects(voxel_slot=voxel_slot, slot_object=slot_object, slot_cells=slot_cells,
+                       n_cells=n_cells, centre=centre, top=top)
 
     def _build_team(self) -> None:
         cfg = self.config
@@ -152,92 +262,60 @@ class World:
         if len(self.scenario.starts) < self.n_robots:
             raise ConfigError(f"scenario {self.scenario.name!r} has {len(self.scenario.starts)} "
                               f"start positions; team needs {self.n_robots}")
-        self.kind = np.array([WHEELED] * cfg.team.wheeled + [QUAD] * cfg.team.quad, np.int64)
-        specs = [cfg.wheeled, cfg.quad]
-        self.radius = np.array([specs[k].radius for k in self.kind])
-        self.kin = np.array([[s.max_speed for s in specs], [s.max_vertical_speed for s in specs],
-                             [s.max_yaw_rate for s in specs], [s.max_pitch_rate for s in specs],
-                             [np.radians(s.pitch_limits[0]) for s in specs],
-                             [np.radians(s.pitch_limits[1]) for s in specs]])
-        n_max = max(s.n_rays for s in specs)
-        self.ray_dirs = np.zeros((2, n_max, 3))
-        for k, s in enumerate(specs):
-            self.ray_dirs[k, :s.n_rays] = s.ray_directions()
-        self.n_rays = np.array([s.n_rays for s in specs], dtype=np.int64)
-        self.sensor_range = np.array([s.sensor_range for s in specs])
-        self.extent = self.grid.extent
-        self.vnorm = np.array([s.max_speed * np.sqrt(2.0) for s in specs])
-        self.vznorm = np.array([s.max_vertical_speed for s in specs])
-        self.flags = scheme_flags(cfg.comm_scheme)
-        self.altitude = np.array([specs[k].altitude for k in self.kind])
-        n = self.n_robots
-        self.pos, self.vel = np.zeros((n, 3)), np.zeros((n, 3))
-        self.yaw, self.pitch = np.zeros(n), np.zeros(n)
-        self.cell_state = np.zeros(len(self.cells), dtype=np.uint8)
-        self.obj_left = self.obj_total.copy()
-        self.obj_seen = np.zeros(self.n_objects, dtype=np.uint8)
-        self.obj_seen_by_quad = np.zeros(self.n_objects, dtype=np.uint8)
+        kind = np.array([WHEELED] * cfg.team.wheeled + [QUAD] * cfg.team.quad, np.int64)
+        specs = [getattr(cfg, k) for k in KINDS]
+        self.team: Team = build_team(specs, kind)
+        self.altitude = np.array([specs[k].altitude for k in kind])
 
     # ------------------------------------------------------------------ running
     def reset(self, rng: np.random.Generator) -> np.ndarray:
         """Put robots on their starts (facing the arena centre) and observe without scanning."""
-        n = self.n_robots
-        self.pos[:, :2] = np.array(self.scenario.starts[:n], dtype=np.float64)
-        self.pos[:, 2] = self.altitude
+        n, state = self.n_robots, self.state
+        state.pos[:, :2] = np.array(self.scenario.starts[:n], dtype=np.float64)
+        state.pos[:, 2] = self.altitude
         if self.config.start_jitter > 0:
             self._jitter_starts(rng)
-        centre = self.extent[:2] / 2
-        self.yaw[:] = np.arctan2(centre[1] - self.pos[:, 1], centre[0] - self.pos[:, 0])
-        self.pitch[:] = 0.0
-        self.vel[:] = 0.0
+        centre = self.voxels.extent[:2] / 2
+        state.yaw[:] = np.arctan2(centre[1] - state.pos[:, 1], centre[0] - state.pos[:, 0])
+        state.pitch[:] = 0.0
+        state.vel[:] = 0.0
         for i in range(n):
             if self._collides(i):
-                raise ConfigError(f"start of {self.agent_ids[i]} at {self.pos[i].round(2).tolist()}"
-                                  f" in scenario {self.scenario.name!r} collides")
-        self.cell_state[:] = 0
-        self.obj_left[:] = self.obj_total
-        self.obj_seen[:] = 0
-        self.obj_seen_by_quad[:] = 0
-        self.collided[:] = 0
-        self._run(np.zeros((n, 5)), move=False, scan=False)
-        return self.obs
+                raise ConfigError(f"start of {self.agent_ids[i]} at "
+                                  f"{state.pos[i].round(2).tolist()} in scenario "
+                                  f"{self.scenario.name!r} collides")
+        state.cell_state[:] = 0
+        state.obj_left[:] = self.objects.n_cells
+        state.obj_seen[:] = 0
+        state.obj_seen_by_quad[:] = 0
+        self.buffers.collided[:] = 0
+        self._run(np.zeros((n, ACTION_WIDTH)), move=False, scan=False)
+        return self.buffers.obs
 
     def _jitter_starts(self, rng: np.random.Generator) -> None:
-        base = self.pos.copy()
+        pos = self.state.pos
+        base = pos.copy()
         for i in range(self.n_robots):
             for _ in range(100):
-                self.pos[i, :2] = base[i, :2] + rng.uniform(-1, 1, 2) * self.config.start_jitter
+                pos[i, :2] = base[i, :2] + rng.uniform(-1, 1, 2) * self.config.start_jitter
                 if not self._collides(i):
                     break
             else:
-                self.pos[i] = base[i]
+                pos[i] = base[i]
 
     def _collides(self, i: int) -> bool:
-        g = self.grid
-        return collision_at(self.occ, g.nx, g.ny, g.nz, g.cell_size, self.pos[: i + 1],
-                            self.radius, i, *self.pos[i]) != COLLIDE_NONE
+        g, pos = self.grid, self.state.pos
+        return collision_at(self.voxels.occ, g.nx, g.ny, g.nz, g.cell_size, pos[: i + 1],
+                            self.team.radius, i, *pos[i]) != COLLIDE_NONE
 
     def step(self, actions: np.ndarray) -> np.ndarray:
-        """Advance one step with actions (n_robots, 5) in [-1, 1]; returns the obs matrix."""
+        """Advance one step with actions (n_robots, ACTION_WIDTH) in [-1, 1]; returns obs."""
         self._run(actions, move=True, scan=True)
-        return self.obs
+        return self.buffers.obs
 
     def _run(self, actions: np.ndarray, move: bool, scan: bool) -> None:
-        if self._args is None:  # arrays are updated in place, so the tuple is built once
-            lay = self.layout
-            self._actions = np.zeros((self.n_robots, 5))
-            self._args = (self.occ, self.box, self.shape_arr, self.grid.cell_size, self._actions,
-                          self.config.dt, self.kind, self.pos, self.vel, self.yaw, self.pitch,
-                          self.radius, self.kin, self.voxel_slot, self.slot_obj,
-                          self.slot_cells, self.cell_state, self.obj_left, self.obj_seen,
-                          self.obj_seen_by_quad, self.ray_dirs, self.n_rays,
-                          self.sensor_range)
-            self._tail = (self.obs, self.new_cells, self.collided, lay.own_off,
-                          lay.comm_off, lay.obj_off, self.extent, self.vnorm, self.vznorm,
-                          self.flags, self.obj_centre, self.obj_top, self.obj_total,
-                          self.config.object_info_slots, self._dist_buf, self._near)
-        self._actions[:] = actions
-        step_world(*self._args, move, scan, *self._tail)
+        self.buffers.actions[:] = actions
+        step_world_fields(self._fields, self.config.dt, move, scan)
 
     @property
     def n_cells(self) -> int:
@@ -245,4 +323,4 @@ class World:
 
     @property
     def n_scanned(self) -> int:
-        return int(self.n_cells - self.obj_left.sum())
+        return int(self.n_cells - self.state.obj_left.sum())
