@@ -23,6 +23,7 @@ from rl_scan.envs.episode import run_episode
 from rl_scan.envs.heuristics import GreedyTeam, RandomTeam
 from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.raycast import cast_rays
+from rl_scan.envs.sim.robots import ACTION_WIDTH
 from rl_scan.envs.sim.scenarios import N_TEST
 
 RAYCAST_LIMIT = 26e6  # rays/s/core of a plain numba DDA here (docs/library-facts.md)
@@ -49,7 +50,7 @@ def bench_core(config: EnvConfig, seconds: float) -> dict[str, float]:
     core = ScanCore(config)
     world = core.world
     rng = np.random.default_rng(0)
-    actions = rng.uniform(-1, 1, (1000, world.n_robots, 5))
+    actions = rng.uniform(-1, 1, (1000, world.n_robots, ACTION_WIDTH))
     core.reset(seed=0)
     world.step(actions[0])  # compile
     steps = _timed_loop(lambda k: world.step(actions[k % 1000]), lambda: world.reset(rng),
