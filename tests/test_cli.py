@@ -75,6 +75,8 @@ def test_bench_env_smoke_writes_figures(capsys, tmp_path):
     (["render", "--out", "x.jpg"], "out='x.jpg'"),
     (["replay", "--out", "x.png"], "allowed a path ending in .html"),
     (["bench", "env", "--seconds", "0"], "seconds=0.0"),
+    (["bench", "train", "--threads", "0"], "threads=0"),
+    (["bench", "train", "--batch", "0"], "batch=0"),
 ])
 def test_bad_input_is_one_clear_line(capsys, argv, needle):
     code, out, err = run(capsys, *argv)
