@@ -44,7 +44,7 @@ from ray.rllib.utils.metrics import (
     RLMODULE_INFERENCE_TIMER,
 )
 
-from rl_scan.algorithms.fast_runner.acting import BatchedPolicy
+from rl_scan.algorithms.fast_runner.acting import BatchedPolicy, modules_in_eval_mode
 from rl_scan.algorithms.fast_runner.episodes import Chunk, build_episode
 from rl_scan.algorithms.fast_runner.support import check_fast_sampler
 from rl_scan.algorithms.fast_runner.team import TeamSlots
@@ -102,7 +102,8 @@ class FastEnvRunner(MultiAgentEnvRunner):
             self._needs_initial_reset = False
         if num_episodes is not None:
             self._needs_initial_reset = True
-        with torch_threads(1):
+        actors = [self.module[m] for m in self.team.modules]
+        with torch_threads(1), torch.inference_mode(), modules_in_eval_mode(actors):
             done, stats = self._run(num_timesteps, num_episodes, explore)
         ongoing = self._cut_ongoing() if num_timesteps is not None else []
         self._log_sample_metrics(stats)
