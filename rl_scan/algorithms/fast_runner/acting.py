@@ -21,7 +21,6 @@ import numpy as np
 import torch
 from ray.rllib.core.columns import Columns
 from ray.rllib.utils.metrics import WEIGHTS_SEQ_NO
-from ray.rllib.utils.spaces.space_utils import clip_action, unsquash_action
 
 from rl_scan.algorithms.fast_runner.team import TeamSlots
 
@@ -84,10 +83,13 @@ class BatchedPolicy:
         return out
 
     def _for_env(self, mid: str, actions: np.ndarray) -> np.ndarray:
-        """NormalizeAndClipActions on a batch: the same arithmetic, row by row."""
+        """NormalizeAndClipActions on a batch: RLlib's ``unsquash_action`` (or
+        ``clip_action``) arithmetic for a bounded float Box, in the same order of
+        operations (so the same bits), without its per-call structure walk (~40 us)."""
         space = self.team.modules[mid].action_space
         if self.normalize:
-            return unsquash_action(actions, space)
+            return np.clip(space.low + (actions + 1.0) * (space.high - space.low) / 2.0,
+                           space.low, space.high)
         if self.clip:
-            return clip_action(actions, space)
+            return np.clip(actions, space.low, space.high)
         return actions

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import gymnasium as gym
+import numpy as np
 
 from rl_scan.config import fail
 
@@ -41,6 +42,11 @@ class TeamSlots:
         modules, slots = {}, []
         for mid, members in blocks.items():
             first = members[0]
+            space = action_spaces[first]
+            if not (isinstance(space, gym.spaces.Box) and space.is_bounded()
+                    and np.issubdtype(space.dtype, np.floating)):
+                fail("sampler", "fast", f"'rllib' for the action space {space} of {first!r} "
+                                        "(the fast sampler acts in bounded float boxes)")
             for aid in members:
                 if (observation_spaces[aid] != observation_spaces[first]
                         or action_spaces[aid] != action_spaces[first]):
