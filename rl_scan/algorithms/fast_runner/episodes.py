@@ -45,16 +45,12 @@ class Chunk:
         return position - self.start - self.lookback
 
     def successor(self, lookback_horizon: int, position: int) -> Chunk:
-        """The next chunk of this (ongoing) episode, after the timeline was restarted at
-        this chunk's last ``lookback`` transitions (see ``carry``)."""
-        lookback = self.carry(lookback_horizon, position)
+        """The next chunk of this ongoing episode, for a timeline restarted at its first
+        lookback position. As ``MultiAgentEpisode.cut``: up to ``lookback_horizon``
+        transitions of lookback, taken from this chunk including its own lookback."""
+        lookback = min(lookback_horizon, position - self.start)
         return Chunk(self.world, 0, self.env_t_started + self.steps(position), lookback,
                      self.episode_id, self.agent_episode_ids)
-
-    def carry(self, lookback_horizon: int, position: int) -> int:
-        """Transitions the next chunk keeps as lookback (as ``cut`` does: up to the
-        horizon, from this chunk including its own lookback)."""
-        return min(lookback_horizon, position - self.start)
 
 
 def build_episode(chunk: Chunk, timelines: Timelines, team: TeamSlots, *,

@@ -184,13 +184,14 @@ class FastEnvRunner(MultiAgentEnvRunner):
                              action_spaces=self.spaces_of_agents[1],
                              mapping_fn=self.config.policy_mapping_fn)
 
-    def _finish_episode(self, world: int, terminated: bool, truncated: bool):
+    def _finish_episode(self, world: int, terminated: bool,
+                        truncated: bool) -> MultiAgentEpisode:
         chunk = self.chunks[world]
-        chunk.end, chunk.terminated, chunk.truncated = int(self.timelines.pos[world]), \
-            terminated, truncated
+        chunk.end = int(self.timelines.pos[world])
+        chunk.terminated, chunk.truncated = terminated, truncated
         episode = self._episode(chunk)
-        self._make_on_episode_callback("on_episode_end", world,
-                                       {world: episode})  # type: ignore[arg-type]
+        # RLlib's helper reads episodes[world], as from its list of ongoing episodes
+        self._make_on_episode_callback("on_episode_end", world, {world: episode})
         self.chunks[world] = None
         return episode
 
