@@ -11,7 +11,8 @@ from typing import Any
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 
 from rl_scan.algorithms.callbacks import ScanMetricsCallback
-from rl_scan.config import to_dict
+from rl_scan.algorithms.registry import DEFAULT_SAMPLER, check_sampler
+from rl_scan.config import check_range, to_dict
 from rl_scan.envs.observations import kind_of
 from rl_scan.envs.rllib_env import ScanMultiAgentEnv
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
@@ -33,16 +34,25 @@ def team_kinds(env_config: EnvConfig | dict[str, Any]) -> list[str]:
 def configure_scan(config: AlgorithmConfig, env_config: EnvConfig | dict[str, Any], *,
                    num_env_runners: int = 0, num_envs_per_env_runner: int = 1,
                    evaluation_interval: int = 0, evaluation_episodes: int = 1,
-                   seed: int = 0) -> AlgorithmConfig:
+                   seed: int = 0, sampler: str = DEFAULT_SAMPLER) -> AlgorithmConfig:
     """Apply the shared settings to an algorithm config (returns the same object).
 
     A mapping is validated here; the typed config becomes a dict only for RLlib, which
-    hands it to every env it creates."""
+    hands it to every env it creates. ``sampler`` picks the env runner (``SAMPLERS`` in
+    the registry): ``fast`` (rl_scan.algorithms.fast_runner) or ``rllib``."""
     env = make_env_config(env_config)
+    check_range("num_envs_per_env_runner", num_envs_per_env_runner, 1)
+    check_range("num_env_runners", num_env_runners, 0)
+    runner_cls = None
+    if check_sampler(sampler) == "fast":
+        from rl_scan.algorithms.fast_runner import FastEnvRunner
+
+        runner_cls = FastEnvRunner
     config = (config
               .environment(ScanMultiAgentEnv, env_config=to_dict(env))
               .env_runners(num_env_runners=num_env_runners,
-                           num_envs_per_env_runner=num_envs_per_env_runner)
+                           num_envs_per_env_runner=num_envs_per_env_runner,
+                           env_runner_cls=runner_cls)
               .learners(num_learners=0)
               # A list, not a set: RLlib builds the modules (and so draws their initial
               # weights) in this order, and a set's order changes with PYTHONHASHSEED.
@@ -57,4 +67,8 @@ def configure_scan(config: AlgorithmConfig, env_config: EnvConfig | dict[str, An
             # clips a Gaussian's samples, so a mean beyond +-1 gets no gradient and
             # mean actions are not the policy that was trained.
             evaluation_config=type(config).overrides(explore=True))
+    if runner_cls is not None:
+        from rl_scan.algorithms.fast_runner import check_fast_sampler
+
+        check_fast_sampler(config)
     return config

@@ -3,7 +3,7 @@
 Every entry's builder is called the same way by the run driver:
 ``builder(env_config, train_batch_size=..., minibatch_size=..., num_epochs=..., lr=...,
 num_env_runners=..., num_envs_per_env_runner=..., evaluation_interval=...,
-evaluation_episodes=..., seed=..., **settings, **algo_kwargs)`` and returns an RLlib
+evaluation_episodes=..., seed=..., sampler=..., **settings, **algo_kwargs)`` and returns an RLlib
 ``AlgorithmConfig``. Adding an algorithm is one entry here. Builders are imported on
 first use, so reading the registry (``--help``) does not import Ray.
 """
@@ -54,6 +54,20 @@ def _meta_entry() -> AlgorithmEntry:
         "meta-poca", "MetaPOCA: MAML over POCA (meta-MRSS, the paper's Algorithm 1)",
         "rl_scan.algorithms.maml:meta_poca_config", settings=MetaSettings,
         preset_settings=PRESET_SETTINGS, local_sampling=True)
+
+
+SAMPLERS = {
+    "fast": "batched sampling of all of a runner's worlds (rl_scan.algorithms.fast_runner)",
+    "rllib": "RLlib's own MultiAgentEnvRunner (the reference)",
+}
+"""How env runners sample (``--sampler``); ``fast`` is the default."""
+DEFAULT_SAMPLER = "fast"
+
+
+def check_sampler(name: str) -> str:
+    if name not in SAMPLERS:
+        fail("sampler", name, f"one of {sorted(SAMPLERS)}")
+    return name
 
 
 ALGORITHMS: dict[str, AlgorithmEntry] = {e.name: e for e in (

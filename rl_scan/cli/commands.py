@@ -287,7 +287,8 @@ def train_cmd(args: argparse.Namespace) -> int:
 
     overrides = {k: v for k, v in (("num_env_runners", args.num_env_runners),
                                    ("num_envs_per_env_runner", args.envs_per_runner),
-                                   ("total_env_steps", args.total_env_steps)) if v is not None}
+                                   ("total_env_steps", args.total_env_steps),
+                                   ("sampler", args.sampler)) if v is not None}
     spec = make_run_spec(args.algo, env_mapping_from_args(args), args.preset, seed=args.seed,
                          preset_overrides=overrides, init_from=getattr(args, "init_from", None))
     run_dir = train_spec(spec, results_dir=args.results, name=args.name, address=args.address,
@@ -313,7 +314,8 @@ def experiment_cmd(args: argparse.Namespace) -> int:
     run_protocol(args.results, args.name, preset=args.preset,
                  methods=[m.strip() for m in args.methods.split(",") if m.strip()],
                  tests=parse_tests(args.tests), seeds=args.seeds,
-                 protocol_overrides=overrides, jobs=args.jobs, address=args.address)
+                 protocol_overrides=overrides, jobs=args.jobs, address=args.address,
+                 preset_overrides={"sampler": args.sampler} if args.sampler else None)
     return 0
 
 
@@ -322,7 +324,9 @@ def ablate_cmd(args: argparse.Namespace) -> int:
     from rl_scan.tuning.ablate import ablate
 
     overrides = {k: v for k, v in (("num_env_runners", args.num_env_runners),
-                                   ("total_env_steps", args.total_env_steps)) if v is not None}
+                                   ("num_envs_per_env_runner", args.envs_per_runner),
+                                   ("total_env_steps", args.total_env_steps),
+                                   ("sampler", args.sampler)) if v is not None}
     folder = ablate(args.study, args.preset, seeds=args.seeds, trials=args.trials,
                     results_dir=args.results, name=args.name, address=args.address,
                     resume=args.resume, env_config=env_mapping_from_args(args),

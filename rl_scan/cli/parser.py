@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import argparse
 
-from rl_scan.algorithms.registry import ALGORITHMS
+from rl_scan.algorithms.registry import ALGORITHMS, DEFAULT_SAMPLER, SAMPLERS
 from rl_scan.cli import commands
 from rl_scan.results import (
     BEST_EVAL_FILE,
@@ -37,6 +37,13 @@ def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
     p.add_argument("--num-env-runners", type=int, default=None,
                    help="remote sampling actors (preset default; each needs a CPU)")
     p.add_argument("--envs-per-runner", type=int, default=None, help="envs per env runner")
+    _add_sampler_arg(p)
+
+
+def _add_sampler_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sampler", choices=tuple(SAMPLERS), default=None,
+                   help="; ".join(f"{k}: {v}" for k, v in SAMPLERS.items())
+                   + f" (default {DEFAULT_SAMPLER})")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -217,6 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
     mm.add_argument("--address", default=None, help="Ray cluster address (default: local)")
     mm.add_argument("--results", default="results")
     mm.add_argument("--name", default="meta-mrss")
+    _add_sampler_arg(mm)
     mm.set_defaults(func=commands.experiment_cmd)
 
     ev = sub.add_parser(

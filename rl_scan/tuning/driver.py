@@ -60,6 +60,7 @@ class RunSpec:
                       num_envs_per_env_runner=p.num_envs_per_env_runner,
                       evaluation_interval=p.evaluation_interval,
                       evaluation_episodes=p.evaluation_episodes, seed=self.seed,
+                      sampler=p.sampler,
                       **settings_kwargs(self.settings), **self.algo_kwargs)
         config = entry.load_builder()(self.env, **kwargs)
         if self.init_from is not None:

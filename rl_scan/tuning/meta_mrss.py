@@ -78,16 +78,19 @@ def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protoco
 
 
 def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
-              protocol: Protocol, env_config: dict[str, Any]) -> list[Job]:
+              protocol: Protocol, env_config: dict[str, Any],
+              preset_overrides: dict[str, Any] | None = None) -> list[Job]:
     """Every run of the protocol, seed by seed (the order runs start in): each method's
-    pre-training, then its adaptation to every test scene (which waits for it)."""
+    pre-training, then its adaptation to every test scene (which waits for it).
+    ``preset_overrides`` (e.g. the sampler) apply to every run."""
+    common = dict(preset_overrides or {})
     jobs = []
     for seed in range(seeds):
         for method in methods:
             pre = None
             if method in PRETRAIN:
                 algo, scenario = PRETRAIN[method]
-                overrides = {"total_env_steps": protocol.pretrain_steps}
+                overrides = {**common, "total_env_steps": protocol.pretrain_steps}
                 if get_algorithm(algo).local_sampling:
                     overrides["num_env_runners"] = 0
                 pre = Job(f"pre-train {method} (seed {seed}, {protocol.pretrain_steps:,} "
@@ -103,7 +106,7 @@ def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
                     dict(algo="poca", env_config={**env_config, "scenario": test},
                          preset_name=protocol.train_preset, seed=seed,
                          init_from=pre.folder / pre.name if pre else None,
-                         preset_overrides={"total_env_steps": protocol.adapt_steps,
+                         preset_overrides={**common, "total_env_steps": protocol.adapt_steps,
                                            "evaluation_interval": protocol.eval_interval}),
                     after=pre))
     return jobs
@@ -125,10 +128,12 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
                  methods: tuple[str, ...] | list[str] = METHODS, tests: list[str] | None = None,
                  seeds: int = 3, env_config: dict[str, Any] | None = None,
                  protocol_overrides: dict[str, int] | None = None, jobs: int | None = None,
-                 address: str | None = None, console=None) -> dict:
+                 address: str | None = None, preset_overrides: dict[str, Any] | None = None,
+                 console=None) -> dict:
     """Pre-train and adapt every method on every test scene and seed; returns the summary.
 
-    ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold).
+    ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold);
+    ``preset_overrides`` (e.g. ``{"sampler": "rllib"}``) apply to every run.
     """
     from rich.console import Console
 
@@ -143,7 +148,7 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
         check_range("jobs", jobs, 1)
     env_config = dict(env_config or {})
     root = Path(results_dir).resolve() / name
-    plan = plan_jobs(root, methods, tests, seeds, protocol, env_config)
+    plan = plan_jobs(root, methods, tests, seeds, protocol, env_config, preset_overrides)
     check_jobs(plan)
     need = required_cpus(get_preset(protocol.train_preset))
     cpus = _available_cpus(address)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from rl_scan.algorithms.registry import DEFAULT_SAMPLER, SAMPLERS
 from rl_scan.config import build_config, check_range, fail
 
 
@@ -29,6 +30,9 @@ class TrainPreset:
     num_env_runners: int = 0
     """Remote sampling actors (0 = sample in the training process)."""
     num_envs_per_env_runner: int = 4
+    sampler: str = DEFAULT_SAMPLER
+    """How env runners sample: ``fast`` (batched, the default) or ``rllib`` (RLlib's own
+    runner, the reference)."""
     evaluation_interval: int = 5
     """Evaluate every N iterations (0 = never)."""
     evaluation_episodes: int = 3
@@ -44,6 +48,8 @@ class TrainPreset:
         check_range(prefix + "lr", self.lr, 0.0, 1.0, lo_open=True)
         check_range(prefix + "num_env_runners", self.num_env_runners, 0, 1024)
         check_range(prefix + "num_envs_per_env_runner", self.num_envs_per_env_runner, 1, 256)
+        if self.sampler not in SAMPLERS:
+            fail(prefix + "sampler", self.sampler, f"one of {sorted(SAMPLERS)}")
         check_range(prefix + "evaluation_interval", self.evaluation_interval, 0)
         check_range(prefix + "evaluation_episodes", self.evaluation_episodes, 1)
         check_range(prefix + "checkpoint_frequency", self.checkpoint_frequency, 1)
