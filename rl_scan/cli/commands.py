@@ -115,17 +115,17 @@ def _parse_algos(text: str, allowed) -> list[str]:
 
 
 def bench_train_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.algorithms.registry import ALGORITHMS
     from rl_scan.cli.bench_train import run_bench_train
     from rl_scan.cli.env_args import env_config_from_args
 
-    algos = _parse_algos(args.algos, ALGORITHMS)
     for name in ("iterations", "batch", "minibatch", "epochs", "envs_per_runner"):
         if getattr(args, name) < 1:
             raise ConfigError(f"{name}={getattr(args, name)} is invalid: allowed an integer >= 1")
-    res = run_bench_train(env_config_from_args(args), algos, iterations=args.iterations,
-                          train_batch_size=args.batch, minibatch_size=args.minibatch,
-                          num_epochs=args.epochs, envs_per_runner=args.envs_per_runner)
+    if args.threads < 1:
+        raise ConfigError(f"threads={args.threads} is invalid: allowed an integer >= 1")
+    res = run_bench_train(env_config_from_args(args), iterations=args.iterations,
+                          batch=args.batch, minibatch=args.minibatch, epochs=args.epochs,
+                          envs_per_runner=args.envs_per_runner, threads=args.threads)
     if args.json:
         _write_json(args.json, res)
     return 0

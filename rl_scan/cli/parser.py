@@ -86,17 +86,22 @@ def build_parser() -> argparse.ArgumentParser:
     add_env_args(benv)
     benv.set_defaults(func=commands.bench_cmd)
     btrain = bench_sub.add_parser(
-        "train", formatter_class=fmt, help="end-to-end training throughput",
-        description="Env steps/s of train() (sampling + learning) for each algorithm on the "
-                    "same env and batch sizes with 0 env runners, and for the first "
-                    "algorithm with 1 and 2 env runners; peak RSS of the Ray process tree.")
-    btrain.add_argument("--algos", default="ppo,poca",
-                        help="comma-separated algorithms; the first is the reference")
-    btrain.add_argument("--iterations", type=int, default=3, help="timed train() calls")
-    btrain.add_argument("--batch", type=int, default=2000, help="env steps per iteration")
-    btrain.add_argument("--minibatch", type=int, default=512, help="agent rows per minibatch")
+        "train", formatter_class=fmt, help="training throughput: sampling, learner, end to end",
+        description="For stock RLlib PPO, PPO on the fast sampler and POCA on the fast "
+                    "sampler, at the same batch sizes (default: the quick preset's) and "
+                    "torch threads: env-only, sampling-only, learner-only and end-to-end env "
+                    "steps/s, s/iteration, peak RSS, the learner's FLOPs per env step and "
+                    "GFLOP/s beside a matmul roof measured in the same run; then the fast "
+                    "sampler with 1 and 2 remote env runners; and the ratios. Run it on an "
+                    "idle machine.")
+    btrain.add_argument("--iterations", type=int, default=3, help="timed iterations")
+    btrain.add_argument("--batch", type=int, default=4000, help="env steps per iteration")
+    btrain.add_argument("--minibatch", type=int, default=1024, help="agent rows per minibatch")
     btrain.add_argument("--epochs", type=int, default=3)
     btrain.add_argument("--envs-per-runner", type=int, default=4)
+    btrain.add_argument("--threads", type=int, default=1,
+                        help="torch threads (default 1: what a training run's process gets "
+                             "from Ray per CPU it reserves)")
     btrain.add_argument("--json", default=None, help="also write the figures to this JSON file")
     add_env_args(btrain)
     btrain.set_defaults(func=commands.bench_train_cmd)
