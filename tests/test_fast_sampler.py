@@ -14,6 +14,7 @@ import pytest
 import torch
 from ray.rllib.callbacks.callbacks import RLlibCallback
 from ray.rllib.core.columns import Columns
+from ray.rllib.core.distribution.torch.torch_distribution import TorchDiagGaussian
 from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
@@ -171,6 +172,25 @@ def test_same_seed_same_batch_and_another_seed_another():
     assert_same(a, b)
     with pytest.raises(AssertionError):
         assert_same(a, c)
+
+
+def test_exploring_draws_from_the_modules_gaussian():
+    """The numpy draw is TorchDiagGaussian's: the stored logp is its logp of the stored
+    action, and the actions' standardised noise is standard normal."""
+    runner = FastEnvRunner(config=poca_runner_config(max_steps=50, envs=2))
+    noise = []
+    for e in runner.sample(num_timesteps=400, explore=True):
+        for sa in e.agent_episodes.values():
+            inputs = sa.get_extra_model_outputs(Columns.ACTION_DIST_INPUTS)
+            actions = sa.get_actions()
+            dist = TorchDiagGaussian.from_logits(torch.from_numpy(inputs))
+            np.testing.assert_allclose(sa.get_extra_model_outputs(Columns.ACTION_LOGP),
+                                       dist.logp(torch.from_numpy(actions)).numpy(),
+                                       rtol=1e-5, atol=1e-4)
+            mean, log_std = np.split(inputs, 2, axis=-1)
+            noise.append(((actions - mean) / np.exp(log_std)).ravel())
+    noise = np.concatenate(noise)
+    assert len(noise) == 400 * 16 and abs(noise.mean()) < 0.05 and abs(noise.std() - 1) < 0.05
 
 
 def test_force_reset_and_num_episodes_reset_as_rllib_does():

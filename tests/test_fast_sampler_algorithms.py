@@ -134,17 +134,18 @@ def test_ppo_learner_consumes_fast_episodes_like_stock_ones():
 
 
 def test_poca_on_the_fast_sampler_learns_over_the_untrained_team(ray_session):
-    """Eight POCA iterations (8k env steps) beat the untrained team on the same seeded
-    evaluation episodes (sampled actions, as training evaluates); measured: return 22.0 ->
-    35.6, coverage 3.5 % -> 5.0 %."""
+    """Twelve POCA iterations (12k env steps) beat the untrained team on the same seeded
+    evaluation episodes (sampled actions, as training evaluates). RLlib's learner orders
+    rows by a set of agent ids, so the run depends on the process's hash seed; measured
+    over PYTHONHASHSEED 0-5: return 22.0 -> 35.0 or 55.6, coverage 3.5 % -> 5.5 or 7.9 %."""
     algo = poca_config({"max_steps": 50, "team": {"wheeled": 1, "quad": 1}},
                        train_batch_size=1000, minibatch_size=256, num_epochs=3, lr=1e-3,
                        num_envs_per_env_runner=4, evaluation_interval=100,
                        evaluation_episodes=8, seed=0).build_algo()
     before = algo.evaluate()[R.ENV_RUNNERS]
-    for _ in range(8):
+    for _ in range(12):
         algo.train()
     after = algo.evaluate()[R.ENV_RUNNERS]
     algo.stop()
-    assert after[R.EPISODE_RETURN] > 1.4 * before[R.EPISODE_RETURN]
-    assert after[R.scan_key("coverage")] > before[R.scan_key("coverage")]
+    assert after[R.EPISODE_RETURN] > 1.3 * before[R.EPISODE_RETURN]
+    assert after[R.scan_key("coverage")] > 1.3 * before[R.scan_key("coverage")]
