@@ -244,9 +244,11 @@ def test_ctrl_c_stops_parallel_runs_unfinished_and_a_rerun_completes_them(tmp_pa
     adapt = tmp_path / "mm" / R.ADAPT_DIR
     runs = [adapt / "poca_test0_s0", adapt / "poca_test1_s0"]
     deadline = time.time() + 180
-    # a run has made progress once an evaluation is recorded (its checkpoint may be
-    # persisted by the trial a moment before the driver records the result)
-    while time.time() < deadline and not all((r / R.EVAL_FILE).is_file() for r in runs):
+    # A worker writes a checkpoint before the driver has recorded that iteration's
+    # evaluation: wait for both, or a fast iteration can be stopped in between.
+    while time.time() < deadline and not all(
+            list((r / R.TUNE_DIR / R.TRAIN_TRIAL).glob("checkpoint_*"))
+            and (r / R.EVAL_FILE).is_file() for r in runs):
         time.sleep(0.2)
     os.kill(proc.pid, signal.SIGINT)  # the parent only: it passes Ctrl+C on to its runs
     _, err = proc.communicate(timeout=120)
