@@ -55,6 +55,7 @@ MODULE_RETURNS = "module_episode_returns_mean"
 SCAN_PREFIX = "scan/"  # episode metrics (rl_scan.metrics names) logged by the callback
 EVAL_SCORE = "eval_coverage"  # the latest evaluation's mean coverage (checkpoint score)
 EVALUATED = "evaluated"  # True in the results of an iteration that ran an evaluation
+LEARNER_THREADS = "learner_threads"  # torch threads of the training process (learner_cpus)
 META_BEFORE = "meta/coverage_before_adaptation"  # MetaPOCA: support episodes' coverage
 META_AFTER = "meta/coverage_after_adaptation"  # MetaPOCA: query episodes' coverage
 

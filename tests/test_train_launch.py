@@ -104,6 +104,26 @@ def test_resources_are_checked_before_launch():
     check_resources(get_preset("smoke", {"num_env_runners": 1}), available=2)
     with pytest.raises(ConfigError, match="num_env_runners=2 is invalid: allowed at most 1"):
         check_resources(get_preset("smoke", {"num_env_runners": 2}), available=2)
+    check_resources(get_preset("smoke", {"learner_cpus": 2}), available=2)
+    with pytest.raises(ConfigError, match="learner_cpus=3 is invalid: allowed at most 2 "):
+        check_resources(get_preset("smoke", {"learner_cpus": 3}), available=2)
+    with pytest.raises(ConfigError, match="num_env_runners=1 is invalid: allowed at most 0 "):
+        check_resources(get_preset("smoke", {"learner_cpus": 2, "num_env_runners": 1}),
+                        available=2)
+    with pytest.raises(ConfigError, match="preset.learner_cpus=0 is invalid"):
+        get_preset("smoke", {"learner_cpus": 0})
+
+
+@pytest.mark.parametrize("overrides, threads", [({"num_env_runners": 1}, 1),
+                                                ({"learner_cpus": 2}, 2)])
+def test_a_run_gets_the_cpus_it_reserves(ray_session, tmp_path, overrides, threads):
+    """A remote env runner gets a CPU of the run's own placement group (not a hang), and
+    the learner runs as many torch threads as the run reserves CPUs for it."""
+    run_dir = train("ppo", {"scenario": "test:2"}, "smoke", results_dir=tmp_path,
+                    preset_overrides=overrides)
+    rows = _progress(run_dir)
+    assert [int(float(r[R.ENV_STEPS])) for r in rows] == [400, 800]
+    assert {int(r[R.LEARNER_THREADS]) for r in rows} == {threads}
 
 
 @pytest.mark.slow

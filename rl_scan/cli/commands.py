@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from rl_scan.config import ConfigError, to_dict
 from rl_scan.results import BEST_EVAL_FILE, OPTUNA_DB, run_dir_of
@@ -280,15 +281,24 @@ def _record_best_eval(core, args: argparse.Namespace, runs: list[dict]) -> None:
           f"eval {args.best_info['eval_coverage']:.3f}) recorded in {out}")
 
 
+PRESET_FLAGS = (("num_env_runners", "num_env_runners"),
+                ("num_envs_per_env_runner", "envs_per_runner"), ("learner_cpus", "learner_cpus"),
+                ("total_env_steps", "total_env_steps"), ("sampler", "sampler"))
+"""(preset field, command-line dest) of the flags that override a training preset."""
+
+
+def preset_overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """The preset fields this command's flags set (a flag left out keeps the preset's)."""
+    return {field: getattr(args, dest) for field, dest in PRESET_FLAGS
+            if getattr(args, dest, None) is not None}
+
+
 def train_cmd(args: argparse.Namespace) -> int:
     from rl_scan.cli.env_args import env_mapping_from_args
     from rl_scan.tuning.driver import make_run_spec
     from rl_scan.tuning.launch import train_spec
 
-    overrides = {k: v for k, v in (("num_env_runners", args.num_env_runners),
-                                   ("num_envs_per_env_runner", args.envs_per_runner),
-                                   ("total_env_steps", args.total_env_steps),
-                                   ("sampler", args.sampler)) if v is not None}
+    overrides = preset_overrides_from_args(args)
     spec = make_run_spec(args.algo, env_mapping_from_args(args), args.preset, seed=args.seed,
                          preset_overrides=overrides, init_from=getattr(args, "init_from", None))
     run_dir = train_spec(spec, results_dir=args.results, name=args.name, address=args.address,
@@ -315,7 +325,7 @@ def experiment_cmd(args: argparse.Namespace) -> int:
                  methods=[m.strip() for m in args.methods.split(",") if m.strip()],
                  tests=parse_tests(args.tests), seeds=args.seeds,
                  protocol_overrides=overrides, jobs=args.jobs, address=args.address,
-                 preset_overrides={"sampler": args.sampler} if args.sampler else None)
+                 preset_overrides=preset_overrides_from_args(args) or None)
     return 0
 
 
@@ -323,10 +333,7 @@ def ablate_cmd(args: argparse.Namespace) -> int:
     from rl_scan.cli.env_args import env_mapping_from_args
     from rl_scan.tuning.ablate import ablate
 
-    overrides = {k: v for k, v in (("num_env_runners", args.num_env_runners),
-                                   ("num_envs_per_env_runner", args.envs_per_runner),
-                                   ("total_env_steps", args.total_env_steps),
-                                   ("sampler", args.sampler)) if v is not None}
+    overrides = preset_overrides_from_args(args)
     folder = ablate(args.study, args.preset, seeds=args.seeds, trials=args.trials,
                     results_dir=args.results, name=args.name, address=args.address,
                     resume=args.resume, env_config=env_mapping_from_args(args),

@@ -24,6 +24,7 @@ from rl_scan.tuning.driver import (
     git_commit,
     make_run_spec,
     required_cpus,
+    trial_resources,
     train_run,
 )
 from rl_scan.tuning.launch import check_output_folder, check_resources, init_ray
@@ -81,7 +82,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
             "git_commit": git_commit(), "started": time.strftime("%Y-%m-%d %H:%M:%S")})
     trainable = tune.with_resources(
         tune.with_parameters(train_run, spec=base, study=study.name),
-        {"cpu": required_cpus(preset)})
+        trial_resources(preset))
     concurrent = max(1, int(cpus) // required_cpus(preset))
     console.print(f"[bold]ablate {study.name}[/]: {num_samples} trials of {preset_name} "
                   f"({preset.total_env_steps:,} env steps each), {concurrent} at a time "

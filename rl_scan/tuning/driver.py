@@ -116,7 +116,10 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
 
     if study is not None:
         spec = spec.for_trial(study, params)
+    import torch
+
     preset = spec.preset
+    torch.set_num_threads(preset.learner_cpus)  # as many threads as reserved CPUs
     algorithm = spec.algorithm_config().build_algo()
     checkpoint = tune.get_checkpoint()
     if checkpoint is not None:
@@ -129,6 +132,7 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
             # RLlib repeats the last evaluation in later results: mark the fresh ones.
             result[R.EVALUATED] = bool(preset.evaluation_interval and R.evaluation_of(result)
                                        and it % preset.evaluation_interval == 0)
+            result[R.LEARNER_THREADS] = torch.get_num_threads()
             done = result[R.ENV_STEPS] >= preset.total_env_steps
             if done or it % preset.checkpoint_frequency == 0:
                 with tempfile.TemporaryDirectory() as tmp:
@@ -156,8 +160,21 @@ def checkpoint_config(preset: TrainPreset):
 
 
 def required_cpus(preset: TrainPreset) -> int:
-    """CPU bundles of one run: the training process plus one per env runner."""
-    return 1 + preset.num_env_runners
+    """CPUs of one run: the training process's ``learner_cpus`` plus one per env runner."""
+    return preset.learner_cpus + preset.num_env_runners
+
+
+def trial_resources(preset: TrainPreset):
+    """Tune's placement group of one run: the training process's bundle, then one per runner.
+
+    The first bundle is the trainable's own (Ray gives it OMP_NUM_THREADS = its CPUs); env
+    runners created inside it are captured into the others. One bundle holding every CPU
+    would leave none for the runners.
+    """
+    from ray.tune.execution.placement_groups import PlacementGroupFactory
+
+    return PlacementGroupFactory([{"CPU": preset.learner_cpus}]
+                                 + [{"CPU": 1}] * preset.num_env_runners)
 
 
 class RunProgress(Callback):

@@ -23,6 +23,7 @@ from rl_scan.tuning.driver import (  # noqa: E402
     checkpoint_config,
     make_run_spec,
     required_cpus,
+    trial_resources,
     train_run,
 )
 from rl_scan.tuning.presets import TrainPreset  # noqa: E402
@@ -49,9 +50,12 @@ def check_resources(preset: TrainPreset, available: float) -> None:
     """Refuse runs whose trial could never be scheduled (Tune would wait silently)."""
     need = required_cpus(preset)
     if need > available:
-        fail("num_env_runners", preset.num_env_runners,
-             f"at most {int(available) - 1} on this Ray cluster ({available:g} CPUs; a run "
-             f"needs 1 + num_env_runners = {need})")
+        field, other = (("num_env_runners", "learner_cpus") if preset.num_env_runners
+                        else ("learner_cpus", "num_env_runners"))
+        allowed = int(available) - getattr(preset, other)
+        fail(field, getattr(preset, field),
+             f"at most {allowed} on this Ray cluster ({available:g} CPUs; a run needs "
+             f"learner_cpus + num_env_runners = {need})")
 
 
 # Same seed, same run: RLlib iterates over sets of module ids while sampling, and a set's
@@ -114,7 +118,7 @@ def train_spec(spec: RunSpec, *, results_dir: str | Path = "results", name: str 
                           f"{start['coverage']:.3f} over {preset.evaluation_episodes} episodes "
                           "(evaluation 0)")
     trainable = tune.with_resources(tune.with_parameters(train_run, spec=spec),
-                                    {"cpu": required_cpus(preset)})
+                                    trial_resources(preset))
     if resume:
         console.print(f"resuming {run_dir}")
         # The run config, the progress callback included, is restored from tuner.pkl.
