@@ -24,8 +24,8 @@ from rl_scan.tuning.driver import (
     git_commit,
     make_run_spec,
     required_cpus,
-    trial_resources,
     train_run,
+    trial_resources,
 )
 from rl_scan.tuning.launch import check_output_folder, check_resources, init_ray
 

@@ -23,8 +23,8 @@ from rl_scan.tuning.driver import (  # noqa: E402
     checkpoint_config,
     make_run_spec,
     required_cpus,
-    trial_resources,
     train_run,
+    trial_resources,
 )
 from rl_scan.tuning.presets import TrainPreset  # noqa: E402
 
