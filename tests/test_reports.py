@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from rl_scan import results as R
+from rl_scan.config import ConfigError
 from rl_scan.reports.build import build_report, condition_rows
 from rl_scan.reports.collect import collect
 from rl_scan.reports.stats import (
@@ -160,6 +161,26 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
         in md
     assert "poca_s0 |" not in md.split("Secondary")[1].split("| run | env steps")[0]
     assert "core 25,997, RLlib env 18,203, PettingZoo 18,139 env steps/s" in md
+
+
+def test_an_earlier_report_is_drawn_tabled_and_compared_beside_new_runs(tmp_path):
+    """--compare: the committed example's curves join the report (same table, figure and
+    P(X > Y)), read from its marl_eval.json alone."""
+    from pathlib import Path
+
+    example = Path(__file__).parents[1] / "reports" / "examples" / "poca_vs_ppo"
+    _run(tmp_path, "poca_s0", "poca", 0, [0.5, 0.97, 0.999])
+    _run(tmp_path, "poca_s1", "poca", 1, [0.6, 0.9, 0.98])
+    md = (build_report(tmp_path, reference=False, compare=example) / "report.md").read_text()
+    # the committed example's own row (report.md there: 99.3 ± 0.2, 326,667 (3/3))
+    assert "| poca on ablation [poca_vs_ppo] | 3/3 | 99.3 ± 0.2 |" in md
+    assert "| 326,667 (3/3) | converged |" in md
+    # finals (0.999, 0.98) against the example's three: 0.999 beats all, 0.98 none
+    finals = sorted(r.final_coverage for r in collect(tmp_path).runs)
+    assert finals == [0.98, 0.999]
+    assert "| poca on ablation > poca on ablation [poca_vs_ppo] | 0.50" in md
+    with pytest.raises(ConfigError, match="compare="):
+        build_report(tmp_path, reference=False, compare=tmp_path / "nothing.json")
 
 
 def test_report_html_renders_in_headless_chromium(tmp_path, chromium):

@@ -283,6 +283,7 @@ def _record_best_eval(core, args: argparse.Namespace, runs: list[dict]) -> None:
 
 PRESET_FLAGS = (("num_env_runners", "num_env_runners"),
                 ("num_envs_per_env_runner", "envs_per_runner"), ("learner_cpus", "learner_cpus"),
+                ("overlap_sampling", "overlap_sampling"),
                 ("total_env_steps", "total_env_steps"), ("sampler", "sampler"))
 """(preset field, command-line dest) of the flags that override a training preset."""
 
@@ -345,6 +346,7 @@ def ablate_cmd(args: argparse.Namespace) -> int:
 def report_cmd(args: argparse.Namespace) -> int:
     from rl_scan.reports.build import build_report
 
-    out = build_report(args.results_dir, args.out, reference=not args.no_reference)
+    out = build_report(args.results_dir, args.out, reference=not args.no_reference,
+                       compare=args.compare)
     print(f"wrote {out / 'report.md'}, {out / 'report.html'}, {out / 'marl_eval.json'}")
     return 0

@@ -40,6 +40,10 @@ def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
     p.add_argument("--learner-cpus", type=int, default=None,
                    help="CPUs (torch threads) of each run's training process (preset default "
                         "1; a lone run on an idle 2-core machine learns ~1.5x faster with 2)")
+    p.add_argument("--overlap", dest="overlap_sampling", action="store_true", default=None,
+                   help="remote env runners sample the next batch while the learner trains "
+                        "on this one (needs --num-env-runners >= 1; one iteration of policy "
+                        "lag)")
     _add_sampler_arg(p)
 
 
@@ -90,10 +94,11 @@ def build_parser() -> argparse.ArgumentParser:
     benv.set_defaults(func=commands.bench_cmd)
     btrain = bench_sub.add_parser(
         "train", formatter_class=fmt, help="training throughput: sampling, learner, end to end",
-        description="For stock RLlib PPO, PPO on the fast sampler and POCA on the fast "
-                    "sampler, at the same batch sizes (default: the quick preset's) and "
-                    "torch threads: env-only, sampling-only, learner-only and end-to-end env "
-                    "steps/s, s/iteration, peak RSS, the learner's FLOPs per env step and "
+        description="For stock RLlib PPO, PPO and POCA on the fast sampler, and both with "
+                    "sampling overlapped with learning (one remote runner), at the same "
+                    "batch sizes (default: the quick preset's) and torch threads: env-only, "
+                    "sampling-only, learner-only and end-to-end env steps/s, s/iteration, "
+                    "memory (peak RSS, PSS), the learner's FLOPs per env step and "
                     "GFLOP/s beside a matmul roof measured in the same run; then the fast "
                     "sampler with 1 and 2 remote env runners; and the ratios. Run it on an "
                     "idle machine.")
@@ -203,6 +208,10 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", default=None, help="output folder (default RESULTS_DIR/report)")
     rp.add_argument("--no-reference", action="store_true",
                     help="skip the scripted greedy team's reference line")
+    rp.add_argument("--compare", default=None, metavar="REPORT",
+                    help="an earlier report (its folder or marl_eval.json, e.g. a committed "
+                         "example): its runs are drawn and tabled beside these, each condition "
+                         "compared with its namesake")
     rp.set_defaults(func=commands.report_cmd)
 
     ex = sub.add_parser("experiment", formatter_class=fmt, help="multi-run protocols",

@@ -16,6 +16,7 @@ are exported in marl-eval's JSON layout (``marl_eval.json``).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -26,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from rl_scan.reports.collect import Collection, RunRecord, collect
+from rl_scan.reports.collect import Collection, RunRecord, collect, read_marl_eval
 from rl_scan.reports.figures import CONVERGED, plot_curves
 from rl_scan.reports.html import to_html
 from rl_scan.reports.stats import (
@@ -183,6 +184,22 @@ def marl_eval_json(runs: list[RunRecord]) -> dict[str, Any]:
     return out
 
 
+def add_comparison(data: Collection, compare: str | Path) -> None:
+    """Add an earlier report's runs (``read_marl_eval``) and compare each condition of
+    this report with its namesake there."""
+    path = Path(compare).resolve()
+    label = (path if path.is_dir() else path.parent).name
+    earlier = read_marl_eval(path, label)
+    ours = {(r.group, r.condition) for r in data.runs}
+    for group in {r.group for r in earlier}:
+        spec = data.reports.get(group, ReportSpec())
+        pairs = tuple(sorted({(c, f"{c} [{label}]") for g, c in ours
+                              if g == group and any(e.condition == f"{c} [{label}]"
+                                                    for e in earlier)}))
+        data.reports[group] = dataclasses.replace(spec, comparisons=spec.comparisons + pairs)
+    data.runs += earlier
+
+
 def bench_lines(results_dir: Path) -> list[str]:
     """Figures of any ``rl-scan bench env|train --json`` files in the results folder."""
     lines = []
@@ -222,8 +239,11 @@ def hardware() -> dict[str, str]:
 
 
 def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
-                 reference: bool = True) -> Path:
-    """Write report.md, report.html, figures/*.png and marl_eval.json; returns out_dir."""
+                 reference: bool = True, compare: str | Path | None = None) -> Path:
+    """Write report.md, report.html, figures/*.png and marl_eval.json; returns out_dir.
+
+    ``compare``: an earlier report (its folder or marl_eval.json) whose runs join the same
+    groups, labelled with its folder name, each condition compared with its namesake."""
     results_dir = Path(results_dir).resolve()
     if not results_dir.is_dir():
         raise ValueError(f"results_dir={str(results_dir)!r} is not a folder")
@@ -232,6 +252,8 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
     data: Collection = collect(results_dir)
     if not data.runs:
         raise ValueError(f"results_dir={str(results_dir)!r} holds no rl-scan runs or studies")
+    if compare is not None:
+        add_comparison(data, compare)
     md = [f"# rl-scan report: {results_dir.name}", "",
           f"{len(data.runs)} runs read from `{results_dir}`. Scores are final-checkpoint "
           "scores (each run's last evaluation); bands are ± 1 std (light) and a 95 % CI of "

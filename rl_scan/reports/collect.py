@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from rl_scan import results as R
+from rl_scan.config import ConfigError
 from rl_scan.studies import META_MRSS_REPORT, STUDIES, ReportSpec
 
 LOOSE = "runs"  # the group of training runs that belong to no study or experiment
@@ -124,3 +125,36 @@ def collect(root: str | Path) -> Collection:
             (c, "ppo" + c[len("poca"):]) for c in sorted(conditions)
             if c.startswith("poca on ") and "ppo" + c[len("poca"):] in conditions))
     return out
+
+
+def read_marl_eval(path: str | Path, label: str) -> list[RunRecord]:
+    """The runs of an earlier report's ``marl_eval.json`` (a report folder or the file),
+    as records whose condition ends in ``[label]``: curves without their run folders (a
+    committed example report keeps only this file)."""
+    path = Path(path)
+    file = path / "marl_eval.json" if path.is_dir() else path
+    data = R.read_json(file) if file.is_file() else None
+    if not isinstance(data, dict) or not isinstance(data.get("rl-scan"), dict):
+        raise ConfigError(f"compare={str(path)!r} is invalid: allowed a report folder or a "
+                          "marl_eval.json written by `rl-scan report`")
+    runs = []
+    for task, algos in data["rl-scan"].items():
+        for key, algo_runs in algos.items():
+            group, _, condition = key.partition(":")
+            for seed, (run_id, steps) in enumerate(sorted(algo_runs.items())):
+                evals = [{"env_steps": s["step_count"], "coverage": s["coverage"][0],
+                          R.EPISODE_RETURN: s.get("return", [math.nan])[0]}
+                         for k, s in sorted(steps.items(), key=lambda kv: _step_index(kv[0]))
+                         if k.startswith("step_")]
+                final = steps.get("absolute_metrics", {})
+                if evals and final.get("success"):
+                    evals[-1]["success"] = final["success"][0]
+                runs.append(RunRecord(
+                    group=group, condition=f"{condition} [{label}]", seed=seed,
+                    path=Path(label) / f"{condition.replace(' ', '_')}_{run_id}", evals=evals,
+                    env_steps=int(evals[-1]["env_steps"]) if evals else 0, scenario=task))
+    return runs
+
+
+def _step_index(key: str) -> int:
+    return int(key.split("_")[1]) if key.startswith("step_") else -1
