@@ -213,3 +213,34 @@ def test_critic_ignores_padding_and_absent_robots():
     v4, _ = critic.values_and_baselines(changed, act, idx, absent)
     assert torch.allclose(v3, v4)  # an absent robot's observation is masked out
     assert not torch.allclose(v, v3)
+
+
+def _episode(rewards: dict[str, list[float]]):
+    from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
+
+    ep = MultiAgentEpisode()
+    ep.add_env_reset(observations={a: np.zeros(3, np.float32) for a in rewards})
+    for t in range(len(next(iter(rewards.values())))):
+        ep.add_env_step(observations={a: np.full(3, t + 1, np.float32) for a in rewards},
+                        actions={a: np.zeros(2, np.float32) for a in rewards},
+                        rewards={a: r[t] for a, r in rewards.items()})
+    return ep
+
+
+@pytest.mark.parametrize("team, rewards, group", [
+    (False, {"w_0": [2.0, 1.0], "q_0": [-1.0, 0.0], "q_1": [-2.0, 0.5]}, [-1.0, 1.5]),
+    (True, {"w_0": [-1.5, 3.0], "q_0": [-1.5, 3.0], "q_1": [-1.5, 3.0]}, [-1.5, 3.0])])
+def test_group_reward_sums_individual_rewards_and_keeps_a_negative_team_reward(
+        team, rewards, group):
+    from rl_scan.algorithms.poca.connectors import AddGroupColumns
+
+    connector = AddGroupColumns(slots=list(rewards), obs_dim=3, act_dim=2, team_reward=team)
+    np.testing.assert_allclose(connector.group_arrays(_episode(rewards))["rew"], group)
+
+
+def test_team_reward_mode_refuses_robots_with_different_rewards():
+    from rl_scan.algorithms.poca.connectors import AddGroupColumns
+
+    connector = AddGroupColumns(slots=["w_0", "q_0"], obs_dim=3, act_dim=2, team_reward=True)
+    with pytest.raises(ValueError, match="robot q_0 .* differ from its team's"):
+        connector.group_arrays(_episode({"w_0": [1.0], "q_0": [0.5]}))

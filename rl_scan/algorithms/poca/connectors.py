@@ -47,7 +47,7 @@ class AddGroupColumns(ConnectorV2):
         obs = np.zeros((n, slots, self.obs_dim), np.float32)
         act = np.zeros((n, slots, self.act_dim), np.float32)
         present = np.zeros((n, slots), np.float32)
-        rew = np.zeros(n, np.float32)
+        rew = None
         for aid, sa in agents.items():
             s = self.slot_of[aid]
             o = np.asarray(sa.get_observations(slice(0, n)), np.float32)
@@ -56,8 +56,13 @@ class AddGroupColumns(ConnectorV2):
             act[:, s, :a.shape[1]] = np.clip(a, -1.0, 1.0)  # what the env applied
             present[:, s] = 1.0
             r = np.asarray(sa.get_rewards(slice(0, n)), np.float32)
-            # individual rewards sum to the group reward; in team mode all agents hold it
-            rew = np.maximum(rew, r) if self.team_reward else rew + r
+            if rew is None:
+                rew = r.copy()
+            elif not self.team_reward:
+                rew += r  # individual rewards sum to the group reward
+            elif not np.array_equal(rew, r):  # in team mode every robot holds it
+                raise ValueError(f"reward_mode='team' but robot {aid} of episode "
+                                 f"{ma_episode.id_} got rewards that differ from its team's")
         return {"obs": obs, "act": act, "present": present, "rew": rew}
 
     def __call__(self, *, rl_module, batch: dict[str, Any], episodes, explore=None,
