@@ -11,8 +11,9 @@ from typing import Any
 from ray.rllib.algorithms.algorithm_config import AlgorithmConfig
 
 from rl_scan.algorithms.callbacks import ScanMetricsCallback
+from rl_scan.algorithms.overlap import OverlappedSamplingConfig
 from rl_scan.algorithms.registry import DEFAULT_SAMPLER, check_sampler
-from rl_scan.config import check_range, to_dict
+from rl_scan.config import check_range, fail, to_dict
 from rl_scan.envs.observations import kind_of
 from rl_scan.envs.rllib_env import ScanMultiAgentEnv
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
@@ -34,15 +35,26 @@ def team_kinds(env_config: EnvConfig | dict[str, Any]) -> list[str]:
 def configure_scan(config: AlgorithmConfig, env_config: EnvConfig | dict[str, Any], *,
                    num_env_runners: int = 0, num_envs_per_env_runner: int = 1,
                    evaluation_interval: int = 0, evaluation_episodes: int = 1,
-                   seed: int = 0, sampler: str = DEFAULT_SAMPLER) -> AlgorithmConfig:
+                   seed: int = 0, sampler: str = DEFAULT_SAMPLER,
+                   overlap_sampling: bool = False) -> AlgorithmConfig:
     """Apply the shared settings to an algorithm config (returns the same object).
 
     A mapping is validated here; the typed config becomes a dict only for RLlib, which
     hands it to every env it creates. ``sampler`` picks the env runner (``SAMPLERS`` in
-    the registry): ``fast`` (rl_scan.algorithms.fast_runner) or ``rllib``."""
+    the registry): ``fast`` (rl_scan.algorithms.fast_runner) or ``rllib``.
+    ``overlap_sampling``: remote runners sample the next batch while this one is learned
+    (rl_scan.algorithms.overlap)."""
     env = make_env_config(env_config)
     check_range("num_envs_per_env_runner", num_envs_per_env_runner, 1)
     check_range("num_env_runners", num_env_runners, 0)
+    if overlap_sampling:
+        if not isinstance(config, OverlappedSamplingConfig):
+            fail("overlap_sampling", True, f"False for {type(config).__name__} (it does not "
+                                           "use PPO's sampling loop)")
+        if num_env_runners < 1:
+            fail("overlap_sampling", True, "only with num_env_runners >= 1 (remote runners "
+                                           "sample while the training process learns)")
+        config.overlap_sampling = True
     runner_cls = None
     if check_sampler(sampler) == "fast":
         from rl_scan.algorithms.fast_runner import FastEnvRunner

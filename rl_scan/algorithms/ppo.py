@@ -8,12 +8,28 @@ from __future__ import annotations
 
 from typing import Any
 
-from ray.rllib.algorithms.ppo import PPOConfig
+from ray.rllib.algorithms.ppo import PPO, PPOConfig
 from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
 
 from rl_scan.algorithms.common import ACTOR_HIDDENS, configure_scan
 from rl_scan.algorithms.optim import FusedAdamPPOTorchLearner
+from rl_scan.algorithms.overlap import OverlappedSampling, OverlappedSamplingConfig
 from rl_scan.envs.sim.env_config import EnvConfig
+
+
+class ScanPPOConfig(OverlappedSamplingConfig, PPOConfig):
+    """RLlib's PPOConfig that can also overlap sampling with learning."""
+
+    def __init__(self, algo_class=None):
+        super().__init__(algo_class=algo_class or ScanPPO)
+
+
+class ScanPPO(OverlappedSampling, PPO):
+    """RLlib's PPO; with ``overlap_sampling`` off its training step is PPO's own."""
+
+    @classmethod
+    def get_default_config(cls) -> ScanPPOConfig:
+        return ScanPPOConfig()
 
 
 def ppo_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size: int,
@@ -21,7 +37,7 @@ def ppo_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size: int,
                lambda_: float = 0.95, clip_param: float = 0.2, entropy_coeff: float = 0.005,
                **common: Any) -> PPOConfig:
     """PPOConfig for the scanning env (``common`` goes to ``configure_scan``)."""
-    config = configure_scan(PPOConfig(), env_config, **common)
+    config = configure_scan(ScanPPOConfig(), env_config, **common)
     return (config
             .rl_module(model_config=DefaultModelConfig(
                 fcnet_hiddens=list(ACTOR_HIDDENS), fcnet_activation="relu",

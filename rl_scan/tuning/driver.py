@@ -26,7 +26,7 @@ from ray.tune import Callback
 
 from rl_scan import results as R
 from rl_scan.algorithms.registry import get_algorithm, settings_kwargs
-from rl_scan.config import deep_merge, to_dict
+from rl_scan.config import deep_merge, fail, to_dict
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
 from rl_scan.studies import get_study
 from rl_scan.tuning.presets import TrainPreset, get_preset
@@ -60,7 +60,7 @@ class RunSpec:
                       num_envs_per_env_runner=p.num_envs_per_env_runner,
                       evaluation_interval=p.evaluation_interval,
                       evaluation_episodes=p.evaluation_episodes, seed=self.seed,
-                      sampler=p.sampler,
+                      sampler=p.sampler, overlap_sampling=p.overlap_sampling,
                       **settings_kwargs(self.settings), **self.algo_kwargs)
         config = entry.load_builder()(self.env, **kwargs)
         if self.init_from is not None:
@@ -98,6 +98,8 @@ def make_run_spec(algo: str, env_config: dict[str, Any] | None = None,
     """Validate a run's inputs once (the preset's env overrides under the user's)."""
     entry = get_algorithm(algo)
     preset = get_preset(preset_name, preset_overrides)
+    if entry.local_sampling and preset.overlap_sampling:
+        fail("overlap_sampling", True, f"False for {algo} (it samples in its own process)")
     env = make_env_config(deep_merge(preset.env_overrides, dict(env_config or {})))
     if init_from is not None:
         from rl_scan.algorithms.rollout import resolve_checkpoint

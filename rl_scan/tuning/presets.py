@@ -35,6 +35,9 @@ class TrainPreset:
     faster with 2 (docs/performance.md). Never more threads than reserved CPUs: a
     two-thread learner beside a busy core runs several times slower."""
     num_envs_per_env_runner: int = 4
+    overlap_sampling: bool = False
+    """Remote runners sample the next batch while the learner trains on this one (needs
+    num_env_runners >= 1; one iteration of policy lag; rl_scan.algorithms.overlap)."""
     sampler: str = DEFAULT_SAMPLER
     """How env runners sample: ``fast`` (batched, the default) or ``rllib`` (RLlib's own
     runner, the reference)."""
@@ -53,6 +56,10 @@ class TrainPreset:
         check_range(prefix + "lr", self.lr, 0.0, 1.0, lo_open=True)
         check_range(prefix + "num_env_runners", self.num_env_runners, 0, 1024)
         check_range(prefix + "learner_cpus", self.learner_cpus, 1, 1024)
+        if self.overlap_sampling and self.num_env_runners < 1:
+            fail(prefix + "overlap_sampling", True, "only with num_env_runners >= 1 (remote "
+                 f"runners sample while the learner learns; num_env_runners="
+                 f"{self.num_env_runners})")
         check_range(prefix + "num_envs_per_env_runner", self.num_envs_per_env_runner, 1, 256)
         if self.sampler not in SAMPLERS:
             fail(prefix + "sampler", self.sampler, f"one of {sorted(SAMPLERS)}")

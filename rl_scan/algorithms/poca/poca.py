@@ -22,6 +22,7 @@ from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
 
 from rl_scan.algorithms.common import ACTOR_HIDDENS, configure_scan
+from rl_scan.algorithms.overlap import OverlappedSampling, OverlappedSamplingConfig
 from rl_scan.algorithms.poca.learner import POCATorchLearner
 from rl_scan.algorithms.poca.modules import CRITIC_ID, GaussianActor, POCACritic
 from rl_scan.envs.observations import action_spaces, kind_of, observation_spaces
@@ -54,7 +55,7 @@ def team_layout(env_config: EnvConfig | dict[str, Any]) -> dict[str, Any]:
                               kind_of, list(KINDS), team_reward=cfg.reward_mode == "team")
 
 
-class POCAConfig(PPOConfig):
+class POCAConfig(OverlappedSamplingConfig, PPOConfig):
     """PPOConfig with POCA's defaults (paper: beta 0.005, eps 0.2, lambda 0.95, 3 epochs)."""
 
     def __init__(self, algo_class=None):
@@ -118,7 +119,7 @@ class POCAConfig(PPOConfig):
         return MultiRLModuleSpec(rl_module_specs=specs)
 
 
-class POCA(PPO):
+class POCA(OverlappedSampling, PPO):
     """MA-POCA on RLlib's new API stack (PPO's sampling loop, POCA's learner and modules)."""
 
     @classmethod
