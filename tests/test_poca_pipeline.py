@@ -8,10 +8,12 @@ import torch
 from ray.rllib.core.columns import Columns
 from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
 from ray.rllib.evaluation.postprocessing import Postprocessing
+from ray.rllib.utils.metrics.metrics_logger import MetricsLogger
 
 from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca import poca_config
-from rl_scan.algorithms.poca.losses import lambda_returns, standardize
+from rl_scan.algorithms.poca.connectors import EV_BASELINE, EV_VALUE
+from rl_scan.algorithms.poca.losses import explained_variance, lambda_returns, standardize
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 
 
@@ -62,8 +64,9 @@ def test_every_row_holds_its_own_observation_and_action_at_its_slot(team):
 def test_targets_are_lambda_returns_of_the_group_reward_minus_baselines():
     config, runner, learner = _runner_and_learner((2, 2))
     episodes = runner.sample(num_timesteps=30, random_actions=False)
+    metrics = MetricsLogger()
     batch = learner._learner_connector(rl_module=learner.module, batch={}, episodes=episodes,
-                                       shared_data={})
+                                       shared_data={}, metrics=metrics)
     rows = batch["quad"]
     v, b = rows[C.OLD_VALUES].numpy(), rows[C.OLD_BASELINES].numpy()
     g = lambda_returns(v, rows[C.GROUP_REW].numpy(), rows[Columns.TERMINATEDS].numpy(),
@@ -72,6 +75,14 @@ def test_targets_are_lambda_returns_of_the_group_reward_minus_baselines():
     mask = rows[Columns.LOSS_MASK].numpy()
     np.testing.assert_allclose(rows[Postprocessing.ADVANTAGES].numpy(),
                                standardize(g - b, mask), rtol=1e-4, atol=1e-4)
+    # the critic diagnostics: how much of the returns b_i (per kind) and V explain
+    valid = mask.astype(bool)
+    assert metrics.peek(("quad", EV_BASELINE)) == pytest.approx(
+        explained_variance(g[valid], b[valid]), abs=1e-5)
+    table = learner.module[CRITIC_ID].table()
+    steps = learner.module[CRITIC_ID].minibatches["train"].steps
+    assert metrics.peek((CRITIC_ID, EV_VALUE)) == pytest.approx(explained_variance(
+        table["returns"][steps].numpy(), table["old_values"][steps].numpy()), abs=1e-5)
     # the group reward of a step is the sum of the four robots' rewards at that step
     ep = episodes[0]
     total = sum(np.asarray(sa.get_rewards()) for sa in ep.agent_episodes.values())

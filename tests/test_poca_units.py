@@ -92,7 +92,8 @@ def test_full_policy_module_loss_on_a_tiny_batch():
         fake, module_id="quad", config=SimpleNamespace(clip_param=0.2, value_clip=None),
         batch=batch,
         fwd_out=fwd)
-    entropy = 2 * 0.5 * (math.log(2 * math.pi) + 1) + math.log(2.0)
+    # ML-Agents' entropy: the mean over the two dimensions (sigma 1 and 2)
+    entropy = (2 * 0.5 * (math.log(2 * math.pi) + 1) + math.log(2.0)) / 2
     expected = -(2 * math.exp(0.045) + 2) / 2 - beta * entropy
     assert loss.item() == pytest.approx(expected, abs=1e-5)
     assert gaussian_entropy(log_std).item() == pytest.approx(entropy, abs=1e-6)
@@ -244,3 +245,14 @@ def test_team_reward_mode_refuses_robots_with_different_rewards():
     connector = AddGroupColumns(slots=["w_0", "q_0"], obs_dim=3, act_dim=2, team_reward=True)
     with pytest.raises(ValueError, match="robot q_0 .* differ from its team's"):
         connector.group_arrays(_episode({"w_0": [1.0], "q_0": [0.5]}))
+
+
+def test_explained_variance_by_hand():
+    from rl_scan.algorithms.poca.losses import explained_variance
+
+    returns = np.array([1.0, 2.0, 3.0, 4.0])  # variance 1.25
+    assert explained_variance(returns, returns) == 1.0
+    assert explained_variance(returns, np.full(4, 2.5)) == pytest.approx(0.0)
+    # errors (0.5, -0.5, 0.5, -0.5): variance 0.25 -> 1 - 0.25 / 1.25
+    assert explained_variance(returns, returns - [0.5, -0.5, 0.5, -0.5]) == pytest.approx(0.8)
+    assert math.isnan(explained_variance(np.ones(4), np.zeros(4)))

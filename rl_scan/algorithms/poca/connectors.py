@@ -23,7 +23,7 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.evaluation.postprocessing import Postprocessing
 
 from rl_scan.algorithms.poca import columns as C
-from rl_scan.algorithms.poca.losses import lambda_returns, standardize
+from rl_scan.algorithms.poca.losses import explained_variance, lambda_returns, standardize
 from rl_scan.algorithms.poca.modules import CRITIC_ID, TRAIN_TABLE
 
 
@@ -86,6 +86,8 @@ class AddGroupColumns(ConnectorV2):
         return batch
 
 
+EV_VALUE = "explained_variance_v"  # logged under the critic: V at sampling time vs returns
+EV_BASELINE = "explained_variance_baseline"  # logged under each actor module: its b_i
 TARGET_CHUNK = 256  # steps per no-grad critic pass: cache-sized blocks run ~25% faster
 
 
@@ -132,7 +134,7 @@ class POCATargets(ConnectorV2):
         self.table_key = table_key
 
     def __call__(self, *, rl_module, batch: dict[str, Any], episodes, shared_data=None,
-                 **kwargs) -> Any:
+                 metrics=None, **kwargs) -> Any:
         critic = rl_module[CRITIC_ID]
         device = next(critic.parameters()).device
         table = {k: torch.as_tensor(v, device=device)
@@ -156,6 +158,10 @@ class POCATargets(ConnectorV2):
             returns = lambda_returns(values.cpu().numpy(), np_[C.GROUP_REW],
                                      np_[Columns.TERMINATEDS], np_[Columns.TRUNCATEDS],
                                      self.gamma, self.lambda_)
+            valid = np_[Columns.LOSS_MASK].astype(bool)
+            if metrics is not None:  # how much of the return b_i explains, per kind
+                metrics.log_value((module_id, EV_BASELINE), explained_variance(
+                    returns[valid], baselines.cpu().numpy()[valid]), window=1)
             advantages = standardize(returns - baselines.cpu().numpy(), np_[Columns.LOSS_MASK])
             rows[Postprocessing.ADVANTAGES] = torch.as_tensor(advantages, device=device)
             rows[C.RETURNS] = torch.as_tensor(returns, device=device)
@@ -168,6 +174,9 @@ class POCATargets(ConnectorV2):
                                present=table["present"], returns=step_returns,
                                old_values=step_values, old_baselines=step_baselines)
         steps = step_valid.nonzero().squeeze(1)
+        if metrics is not None:
+            metrics.log_value((CRITIC_ID, EV_VALUE), explained_variance(
+                step_returns[steps].cpu().numpy(), step_values[steps].cpu().numpy()), window=1)
         size = (math.ceil(len(steps) * self.minibatch_size / largest)
                 if self.minibatch_size and largest else len(steps))
         critic.minibatches[self.table_key] = GroupMinibatches(steps, size)

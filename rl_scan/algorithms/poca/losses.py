@@ -58,8 +58,22 @@ def gaussian_logp_per_dim(actions: torch.Tensor, mean: torch.Tensor,
 
 
 def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
-    """Entropy of a diagonal Gaussian, summed over action dimensions."""
-    return (log_std + 0.5 * (LOG_2PI + 1.0)).sum(-1)
+    """Entropy of a diagonal Gaussian, averaged over action dimensions.
+
+    ML-Agents' Gaussian entropy is the mean over dimensions, so beta means the same for a
+    2-D (wheeled) and a 4-D (quad) action; a sum would weigh it 2x and 4x (RLlib's PPO,
+    our baseline, keeps RLlib's sum)."""
+    return (log_std + 0.5 * (LOG_2PI + 1.0)).mean(-1)
+
+
+def explained_variance(targets: np.ndarray, predictions: np.ndarray) -> float:
+    """1 - Var(targets - predictions) / Var(targets): 1 for a perfect critic, 0 for one
+    that predicts the mean, negative for worse (NaN without variance in the targets)."""
+    targets = np.asarray(targets, np.float64)
+    var = targets.var()
+    if targets.size < 2 or var == 0:
+        return math.nan
+    return float(1.0 - (targets - np.asarray(predictions, np.float64)).var() / var)
 
 
 def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
