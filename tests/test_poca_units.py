@@ -87,6 +87,7 @@ def test_full_policy_module_loss_on_a_tiny_batch():
     beta = 0.005  # the critic's own loss is checked separately
     fake = SimpleNamespace(
         entropy_coeff_schedulers={"quad": SimpleNamespace(get_current_value=lambda: beta)},
+        current_clip=lambda: 0.2,
         metrics=SimpleNamespace(log_dict=lambda *a, **k: None))
     loss = POCATorchLearner.compute_loss_for_module(
         fake, module_id="quad", config=SimpleNamespace(clip_param=0.2, value_clip=None),
@@ -256,3 +257,44 @@ def test_explained_variance_by_hand():
     # errors (0.5, -0.5, 0.5, -0.5): variance 0.25 -> 1 - 0.25 / 1.25
     assert explained_variance(returns, returns - [0.5, -0.5, 0.5, -0.5]) == pytest.approx(0.8)
     assert math.isnan(explained_variance(np.ones(4), np.zeros(4)))
+
+
+def test_ml_agents_decays_at_0_50_and_100_percent_of_the_budget():
+    """decay_steps: lr, clip range and beta fall linearly to ML-Agents' ends, and the
+    learner's optimizer, clip range and entropy weight follow them."""
+    from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
+    from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
+
+    from rl_scan.algorithms.poca import poca_config
+    from rl_scan.config import ConfigError
+
+    config = poca_config({"max_steps": 12}, train_batch_size=40, minibatch_size=32,
+                         decay_steps=1000, lr=4e-4, clip_param=0.3, entropy_coeff=0.01)
+    runner = MultiAgentEnvRunner(config=config)
+    learner = config.build_learner(env=None, spaces=runner.get_spaces())
+    expected = {0: (4e-4, 0.3, 0.01), 500: ((4e-4 + 1e-10) / 2, 0.2, (0.01 + 1e-5) / 2),
+                1000: (1e-10, 0.1, 1e-5), 2000: (1e-10, 0.1, 1e-5)}
+    for step, (lr, clip, beta) in expected.items():
+        learner.after_gradient_based_update(timesteps={NUM_ENV_STEPS_SAMPLED_LIFETIME: step})
+        lrs = [g["lr"] for opt in learner._optimizer_parameters for g in opt.param_groups]
+        assert lrs and all(x == pytest.approx(lr, rel=1e-6) for x in lrs), (step, lrs)
+        assert learner.current_clip() == pytest.approx(clip), step
+        assert learner.entropy_coeff_schedulers["quad"].get_current_value() == pytest.approx(
+            beta, rel=1e-6), step
+    runner.stop()
+    with pytest.raises(ConfigError, match="decay_steps=0 is invalid"):
+        poca_config({}, train_batch_size=40, minibatch_size=32, decay_steps=0)
+
+
+def test_decay_schedules_come_with_the_paper_preset_and_meta_poca_keeps_fixed_settings():
+    from rl_scan.config import ConfigError
+    from rl_scan.tuning.driver import make_run_spec
+
+    poca = make_run_spec("poca", {}, "paper").algorithm_config()
+    assert poca.clip_param_schedule == [[0, 0.2], [8_000_000, 0.1]]
+    assert poca.lr == [[0, 3e-4], [8_000_000, 1e-10]]
+    assert make_run_spec("poca", {}, "quick").algorithm_config().lr == 3e-4
+    assert not make_run_spec("meta-poca", {}, "paper").preset.decay_schedules
+    with pytest.raises(ConfigError, match="decay_schedules=True is invalid: allowed False "
+                                          "for meta-poca"):
+        make_run_spec("meta-poca", {}, "quick", preset_overrides={"decay_schedules": True})

@@ -20,6 +20,16 @@ from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
 
 ACTOR_HIDDENS = (256, 256, 128)  # the paper's 3-layer MLP encoder (sizes assumed)
 
+# ML-Agents' linear decays over a run (``learning_rate_schedule``, ``epsilon_schedule``,
+# ``beta_schedule``: linear): where each setting ends at 100 % of the budget.
+DECAY_ENDS = {"lr": 1e-10, "clip_param": 0.1, "entropy_coeff": 1e-5}
+
+
+def linear_decay(start: float, end: float, steps: int) -> list[list[float]]:
+    """RLlib's schedule format ([[timestep, value], ...], linear in between) from ``start``
+    at 0 env steps to ``end`` at ``steps``."""
+    return [[0, float(start)], [int(steps), float(end)]]
+
 
 def policy_mapping(agent_id: str, episode: Any = None, **kwargs: Any) -> str:
     """'quad_1' -> 'quad': one policy module per robot kind."""

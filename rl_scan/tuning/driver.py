@@ -61,6 +61,7 @@ class RunSpec:
                       evaluation_interval=p.evaluation_interval,
                       evaluation_episodes=p.evaluation_episodes, seed=self.seed,
                       sampler=p.sampler, overlap_sampling=p.overlap_sampling,
+                      decay_steps=p.total_env_steps if p.decay_schedules else None,
                       **settings_kwargs(self.settings), **self.algo_kwargs)
         config = entry.load_builder()(self.env, **kwargs)
         if self.init_from is not None:
@@ -98,8 +99,12 @@ def make_run_spec(algo: str, env_config: dict[str, Any] | None = None,
     """Validate a run's inputs once (the preset's env overrides under the user's)."""
     entry = get_algorithm(algo)
     preset = get_preset(preset_name, preset_overrides)
-    if entry.local_sampling and preset.overlap_sampling:
-        fail("overlap_sampling", True, f"False for {algo} (it samples in its own process)")
+    if entry.local_sampling:  # it samples in its own process with fixed settings
+        for name in ("overlap_sampling", "decay_schedules"):
+            if name in (preset_overrides or {}) and getattr(preset, name):
+                fail(name, True, f"False for {algo} (it samples in its own process and "
+                                 "meta-updates with fixed settings)")
+        preset = dataclasses.replace(preset, overlap_sampling=False, decay_schedules=False)
     env = make_env_config(deep_merge(preset.env_overrides, dict(env_config or {})))
     if init_from is not None:
         from rl_scan.algorithms.rollout import resolve_checkpoint

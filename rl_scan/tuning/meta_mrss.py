@@ -92,7 +92,7 @@ def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
                 algo, scenario = PRETRAIN[method]
                 overrides = {**common, "total_env_steps": protocol.pretrain_steps}
                 if get_algorithm(algo).local_sampling:
-                    overrides.update(num_env_runners=0, overlap_sampling=False)
+                    overrides.update(num_env_runners=0)
                 pre = Job(f"pre-train {method} (seed {seed}, {protocol.pretrain_steps:,} "
                           "env steps)", root / R.PRETRAIN_DIR, f"{method}_s{seed}",
                           dict(algo=algo, env_config={**env_config, "scenario": scenario},

@@ -35,6 +35,9 @@ class TrainPreset:
     faster with 2 (docs/performance.md). Never more threads than reserved CPUs: a
     two-thread learner beside a busy core runs several times slower."""
     num_envs_per_env_runner: int = 4
+    decay_schedules: bool = False
+    """ML-Agents' linear decays over ``total_env_steps``: lr to ~0, beta to 1e-5 and (POCA)
+    the clip range 0.2 -> 0.1 (RLlib's PPO keeps its clip range fixed)."""
     overlap_sampling: bool = False
     """Remote runners sample the next batch while the learner trains on this one (needs
     num_env_runners >= 1; one iteration of policy lag; rl_scan.algorithms.overlap)."""
@@ -81,7 +84,8 @@ PRESETS: dict[str, dict[str, Any]] = {
                   evaluation_episodes=3, checkpoint_frequency=5),
     "paper": dict(total_env_steps=8_000_000, train_batch_size=10_240, minibatch_size=1_024,
                   num_epochs=3, num_env_runners=2, num_envs_per_env_runner=4,
-                  evaluation_interval=10, evaluation_episodes=10, checkpoint_frequency=10),
+                  evaluation_interval=10, evaluation_episodes=10, checkpoint_frequency=10,
+                  decay_schedules=True),
 }
 
 

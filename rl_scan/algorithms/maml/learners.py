@@ -92,7 +92,8 @@ def poca_losses(module, config, fwd_out: dict[str, Any], batch: dict[str, Any],
         losses[mid], stats[mid] = actor_loss(fwd_out[mid], batch[mid],
                                              float(config.clip_param), beta)
     critic = module[CRITIC_ID].loss_from_outputs(fwd_out[CRITIC_ID], critic_steps,
-                                                 value_clip(config), table_key)
+                                                 value_clip(config, float(config.clip_param)),
+                                                 table_key)
     losses[CRITIC_ID] = critic["critic_loss"]
     stats[CRITIC_ID] = {k: v.detach() for k, v in critic.items()}
     return losses, stats

@@ -47,9 +47,9 @@ def actor_loss(fwd_out: dict[str, Any], batch: dict[str, Any], clip_param: float
                                           "entropy": entropy.detach(), "entropy_coeff": beta}
 
 
-def value_clip(config) -> float:
-    """The critic's clipping range: ``value_clip`` if set, else the policy's ``clip_param``."""
-    return float(config.value_clip if config.value_clip is not None else config.clip_param)
+def value_clip(config, clip_param: float) -> float:
+    """The critic's clipping range: ``value_clip`` if set, else the policy's current one."""
+    return float(config.value_clip if config.value_clip is not None else clip_param)
 
 
 class POCATorchLearner(FusedAdamMixin, TorchLearner):
@@ -62,6 +62,11 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
         self.entropy_coeff_schedulers = LambdaDefaultDict(lambda module_id: Scheduler(
             fixed_value_or_schedule=cfg.get_config_for_module(module_id).entropy_coeff,
             framework=self.framework, device=self._device))
+        # One clip range for every module and the critic (ML-Agents' epsilon), decaying
+        # with ``clip_param_schedule`` if set.
+        self.clip_scheduler = Scheduler(
+            fixed_value_or_schedule=getattr(cfg, "clip_param_schedule", None) or cfg.clip_param,
+            framework=self.framework, device=self._device)
         if self._learner_connector is not None:
             team = cfg.poca_team
             self._learner_connector.prepend(AddGroupColumns(
@@ -76,7 +81,8 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
                        ) -> dict[str, Any]:
         losses = super().compute_losses(fwd_out=fwd_out, batch=batch)
         critic = self.module[CRITIC_ID]
-        out = critic.loss(critic.minibatches[TRAIN_TABLE].next(), value_clip(self.config))
+        out = critic.loss(critic.minibatches[TRAIN_TABLE].next(),
+                          value_clip(self.config, self.current_clip()))
         self.metrics.log_dict({k: v.detach() for k, v in out.items()}, key=CRITIC_ID,
                               window=1)
         losses[CRITIC_ID] = out["critic_loss"]
@@ -86,7 +92,7 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
     def compute_loss_for_module(self, *, module_id: str, config, batch: dict[str, Any],
                                 fwd_out: dict[str, Any]) -> torch.Tensor:
         beta = self.entropy_coeff_schedulers[module_id].get_current_value()
-        loss, stats = actor_loss(fwd_out, batch, float(config.clip_param), beta)
+        loss, stats = actor_loss(fwd_out, batch, self.current_clip(), beta)
         self.metrics.log_dict(stats, key=module_id, window=1)
         return loss
 
@@ -95,6 +101,12 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
         super().after_gradient_based_update(timesteps=timesteps)
         from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
+        step = timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0)
         for module_id in set(self.module.keys()) - {CRITIC_ID}:
-            self.entropy_coeff_schedulers[module_id].update(
-                timestep=timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0))
+            self.entropy_coeff_schedulers[module_id].update(timestep=step)
+        self.clip_scheduler.update(timestep=step)
+        self.metrics.log_value((CRITIC_ID, "clip_param"), self.current_clip(), window=1)
+
+    def current_clip(self) -> float:
+        """The clip range now (``clip_param``, or its schedule's value)."""
+        return float(self.clip_scheduler.get_current_value())

@@ -104,3 +104,4 @@ def trust_region_value_loss(values: torch.Tensor, old_values: torch.Tensor,
 def poca_critic_loss(value_loss: torch.Tensor, baseline_loss: torch.Tensor) -> torch.Tensor:
     """ML-Agents' weighting of the critic heads: 0.5 * (value + 0.5 * baseline)."""
     return 0.5 * (value_loss + 0.5 * baseline_loss)
+

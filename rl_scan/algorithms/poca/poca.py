@@ -21,10 +21,11 @@ from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.annotations import override
 
-from rl_scan.algorithms.common import ACTOR_HIDDENS, configure_scan
+from rl_scan.algorithms.common import ACTOR_HIDDENS, DECAY_ENDS, configure_scan, linear_decay
 from rl_scan.algorithms.overlap import OverlappedSampling, OverlappedSamplingConfig
 from rl_scan.algorithms.poca.learner import POCATorchLearner
 from rl_scan.algorithms.poca.modules import CRITIC_ID, GaussianActor, POCACritic
+from rl_scan.config import check_range
 from rl_scan.envs.observations import action_spaces, kind_of, observation_spaces
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
 from rl_scan.envs.sim.robots import KINDS
@@ -72,6 +73,7 @@ class POCAConfig(OverlappedSamplingConfig, PPOConfig):
         self.critic_hidden = 128
         self.critic_heads = 4
         self.value_clip: float | None = None  # None: clip_param, as ML-Agents does
+        self.clip_param_schedule: list | None = None  # [[env steps, clip], ...] or None
 
     def poca(self, *, team: dict[str, Any] = NotProvided, actor_hiddens=NotProvided,
              critic_hidden: int = NotProvided, critic_heads: int = NotProvided,
@@ -131,13 +133,22 @@ class POCA(OverlappedSampling, PPO):
 def poca_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size: int,
                 minibatch_size: int, num_epochs: int = 3, lr: float | list = 3e-4,
                 gamma: float = 0.99, lambda_: float = 0.95, clip_param: float = 0.2,
-                entropy_coeff: float | list = 0.005, base: POCAConfig | None = None,
-                **common: Any) -> POCAConfig:
+                entropy_coeff: float | list = 0.005, decay_steps: int | None = None,
+                base: POCAConfig | None = None, **common: Any) -> POCAConfig:
     """POCAConfig (or ``base``, e.g. a subclass) for the scanning env (``common`` goes to
-    ``configure_scan``)."""
+    ``configure_scan``).
+
+    ``decay_steps``: decay lr, the clip range (policy and critic) and beta linearly from
+    their values to ML-Agents' ends (``DECAY_ENDS``) over that many env steps."""
     env = make_env_config(env_config)
     config = configure_scan(base if base is not None else POCAConfig(), env, **common)
     config.poca(team=team_layout(env))
+    if decay_steps is not None:
+        check_range("decay_steps", decay_steps, 1)
+        lr = linear_decay(lr, DECAY_ENDS["lr"], decay_steps)
+        entropy_coeff = linear_decay(entropy_coeff, DECAY_ENDS["entropy_coeff"], decay_steps)
+        config.clip_param_schedule = linear_decay(clip_param, DECAY_ENDS["clip_param"],
+                                                  decay_steps)
     return (config
             .rl_module(rl_module_spec=config.module_specs())
             .training(train_batch_size_per_learner=train_batch_size,
