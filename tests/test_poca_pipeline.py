@@ -43,10 +43,13 @@ def test_every_row_holds_its_own_observation_and_action_at_its_slot(team):
         assert set(idx) == {i for i, a in enumerate(slots) if a.startswith(module_id)}
         np.testing.assert_array_equal(table_obs[step, idx, :obs.shape[1]], obs)
         np.testing.assert_array_equal(table_act[step, idx, :act.shape[1]], np.clip(act, -1, 1))
-        # the critic's per-step targets are the rows' own (same group return for all robots)
-        np.testing.assert_array_equal(table["returns"][step], rows[C.RETURNS].numpy())
-        np.testing.assert_array_equal(table["old_baselines"][step, idx],
-                                      rows[C.OLD_BASELINES].numpy())
+        # the critic's per-step targets are the rows' own (same group return for all
+        # robots), in the critic's normalised units
+        critic = learner.module[CRITIC_ID]
+        for key, column in (("returns", C.RETURNS), ("old_baselines", C.OLD_BASELINES)):
+            per_row = table[key][step] if key == "returns" else table[key][step, idx]
+            np.testing.assert_allclose(critic.denormalize(torch.as_tensor(per_row)).numpy(),
+                                       rows[column].numpy(), rtol=1e-4, atol=1e-3)
     # every step of the table is shared by all the robots' rows of that step
     n_steps = len(table_obs)
     assert n_steps * len(slots) == len(batch["wheeled"][C.GROUP_ROW]) + len(
@@ -79,8 +82,13 @@ def test_targets_are_lambda_returns_of_the_group_reward_minus_baselines():
     valid = mask.astype(bool)
     assert metrics.peek(("quad", EV_BASELINE)) == pytest.approx(
         explained_variance(g[valid], b[valid]), abs=1e-5)
-    table = learner.module[CRITIC_ID].table()
-    steps = learner.module[CRITIC_ID].minibatches["train"].steps
+    critic = learner.module[CRITIC_ID]
+    table, steps = critic.table(), critic.minibatches["train"].steps
+    # the critic regresses on normalised targets: they de-normalise to the group returns
+    quad_steps = rows[C.GROUP_ROW].long()[torch.as_tensor(valid)]
+    np.testing.assert_allclose(critic.denormalize(table["returns"][quad_steps]).numpy(),
+                               g[valid], rtol=1e-4, atol=1e-3)
+    assert abs(critic.return_scale()[0].item() - 0.0) > 1e-3  # statistics were set
     assert metrics.peek((CRITIC_ID, EV_VALUE)) == pytest.approx(explained_variance(
         table["returns"][steps].numpy(), table["old_values"][steps].numpy()), abs=1e-5)
     # the group reward of a step is the sum of the four robots' rewards at that step

@@ -298,3 +298,32 @@ def test_decay_schedules_come_with_the_paper_preset_and_meta_poca_keeps_fixed_se
     with pytest.raises(ConfigError, match="decay_schedules=True is invalid: allowed False "
                                           "for meta-poca"):
         make_run_spec("meta-poca", {}, "quick", preset_overrides={"decay_schedules": True})
+
+
+def test_return_normalisation_keeps_every_output_and_targets_denormalise_to_returns():
+    """PopArt: new statistics rescale the output layer so V and b_i (de-normalised) do not
+    move; the first batch sets the statistics, later ones move them by RETURN_STATS_RATE."""
+    from rl_scan.algorithms.poca.modules import RETURN_STATS_RATE
+
+    critic = _critic([0, 0, 1, 1])
+    obs, act, present = _group(4)
+
+    def outputs():
+        with torch.no_grad():
+            v, b = critic.group_heads(critic.encode(obs), act, present)
+        return critic.denormalize(v), critic.denormalize(b)
+
+    before = outputs()
+    returns = torch.tensor([10.0, 50.0, 300.0])
+    critic.update_return_stats(returns)
+    mean, std = critic.return_scale()
+    assert mean.item() == pytest.approx(120.0) and std.item() == pytest.approx(
+        float(np.std([10.0, 50.0, 300.0])), rel=1e-5)
+    for a, b in zip(before, outputs()):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-3)
+    torch.testing.assert_close(critic.denormalize(critic.normalize(returns)), returns)
+    critic.update_return_stats(torch.tensor([220.0]))  # mean -> 0.9 * 120 + 0.1 * 220
+    assert critic.return_scale()[0].item() == pytest.approx(
+        (1 - RETURN_STATS_RATE) * 120.0 + RETURN_STATS_RATE * 220.0)
+    for a, b in zip(before, outputs()):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-3)

@@ -54,6 +54,10 @@ class MetaPOCAConfig(POCAConfig, DifferentiableAlgorithmConfig):
         self.meta_order = 1
         self.meta_epochs = 3
         self.task_pool = N_TRAIN
+        # PopArt rescales the critic's output layer in place whenever its statistics move,
+        # i.e. in every adaptation's connector pass: the meta-parameters would change
+        # outside the meta-step. Off until the meta-learner owns the statistics.
+        self.normalize_returns = False
 
     def meta(self, *, tasks: int = NotProvided, episodes: int = NotProvided,
              inner_steps: int = NotProvided, inner_lr: float = NotProvided,

@@ -144,8 +144,9 @@ class POCATargets(ConnectorV2):
                                         table["act"][i:i + TARGET_CHUNK],
                                         table["present"][i:i + TARGET_CHUNK])
                      for i in range(0, len(table["obs"]), TARGET_CHUNK)]
-        step_values = torch.cat([v for v, _ in heads])
-        step_baselines = torch.cat([b for _, b in heads])
+        # the critic predicts in normalised units; targets are built in return units
+        step_values = critic.denormalize(torch.cat([v for v, _ in heads]))
+        step_baselines = critic.denormalize(torch.cat([b for _, b in heads]))
         step_returns = step_values.clone()
         step_valid = torch.zeros(len(step_values), dtype=torch.bool, device=device)
         largest = 0
@@ -170,13 +171,18 @@ class POCATargets(ConnectorV2):
             step_returns[r] = rows[C.RETURNS]
             step_valid[r] = rows[Columns.LOSS_MASK].bool()
             largest = max(largest, len(r))
-        critic.set_group_table(self.table_key, obs=table["obs"], act=table["act"],
-                               present=table["present"], returns=step_returns,
-                               old_values=step_values, old_baselines=step_baselines)
         steps = step_valid.nonzero().squeeze(1)
         if metrics is not None:
             metrics.log_value((CRITIC_ID, EV_VALUE), explained_variance(
                 step_returns[steps].cpu().numpy(), step_values[steps].cpu().numpy()), window=1)
+        # The critic regresses in normalised units, the statistics now including this
+        # batch's returns (its outputs are rescaled to match, so old = current at start).
+        critic.update_return_stats(step_returns[steps])
+        critic.set_group_table(self.table_key, obs=table["obs"], act=table["act"],
+                               present=table["present"],
+                               returns=critic.normalize(step_returns),
+                               old_values=critic.normalize(step_values),
+                               old_baselines=critic.normalize(step_baselines))
         size = (math.ceil(len(steps) * self.minibatch_size / largest)
                 if self.minibatch_size and largest else len(steps))
         critic.minibatches[self.table_key] = GroupMinibatches(steps, size)

@@ -24,6 +24,8 @@ from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca.losses import poca_critic_loss, trust_region_value_loss
 
 CRITIC_ID = "critic"
+RETURN_STATS_RATE = 0.1  # EMA weight of each update's returns in the normalisation
+RETURN_VAR_MIN = 1e-4  # floor of the return variance (std >= 0.01)
 TRAIN_TABLE = "train"  # the group table of a plain POCA update
 
 
@@ -150,6 +152,12 @@ class POCACritic(TorchRLModule):
         self.body = mlp([h + 1, h, h])
         self.head = nn.Linear(h, 1)
         self.hidden = h
+        # Return normalisation (PopArt): V and b_i are predicted in units of running
+        # return statistics, EMA of the first and second moment; a checkpoint without
+        # them loads as mean 0, second moment 1 (no normalisation).
+        self.normalize_returns = bool(cfg.get("normalize_returns", True))
+        self.register_buffer("return_moments", torch.tensor([0.0, 1.0]))
+        self.register_buffer("return_stats_set", torch.tensor(False))
         self._tables: dict[str, dict[str, torch.Tensor]] = {}
         self.minibatches: dict[str, Any] = {}  # per table: its GroupMinibatches
         # Slots of one kind are contiguous (team order): each kind's slots are one slice,
@@ -162,6 +170,38 @@ class POCACritic(TorchRLModule):
             self._slots_of[k] = slice(idx[0], idx[-1] + 1) if idx else None
         self._kind_blocks = sorted(((sl, k) for k, sl in self._slots_of.items() if sl),
                                    key=lambda block: block[0].start)
+
+    def return_scale(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean, std) of the returns the outputs are normalised by."""
+        m1, m2 = self.return_moments
+        return m1, torch.sqrt(torch.clamp(m2 - m1 * m1, min=RETURN_VAR_MIN))
+
+    def normalize(self, returns: torch.Tensor) -> torch.Tensor:
+        mean, std = self.return_scale()
+        return (returns - mean) / std
+
+    def denormalize(self, outputs: torch.Tensor) -> torch.Tensor:
+        mean, std = self.return_scale()
+        return outputs * std + mean
+
+    @torch.no_grad()
+    def update_return_stats(self, returns: torch.Tensor, rate: float = RETURN_STATS_RATE
+                            ) -> None:
+        """Move the statistics towards ``returns`` (the first batch sets them) and rescale
+        the output layer so that every de-normalised output stays what it was (PopArt,
+        van Hasselt et al. 2016): the trust region around the old predictions holds."""
+        if not self.normalize_returns or returns.numel() == 0:
+            return
+        returns = returns.double()
+        batch = torch.stack([returns.mean(), (returns * returns).mean()]).float()
+        first = not bool(self.return_stats_set)
+        old_mean, old_std = (t.clone() for t in self.return_scale())  # not views
+        self.return_moments.copy_(batch if first else
+                                  (1 - rate) * self.return_moments + rate * batch)
+        self.return_stats_set.fill_(True)
+        new_mean, new_std = self.return_scale()
+        self.head.weight.mul_(old_std / new_std)
+        self.head.bias.copy_((old_std * self.head.bias + old_mean - new_mean) / new_std)
 
     def encode(self, group_obs: torch.Tensor) -> torch.Tensor:
         """Each slot's observation encoding (the big matmul), (steps, slots, hidden)."""

@@ -74,15 +74,20 @@ class POCAConfig(OverlappedSamplingConfig, PPOConfig):
         self.critic_heads = 4
         self.value_clip: float | None = None  # None: clip_param, as ML-Agents does
         self.clip_param_schedule: list | None = None  # [[env steps, clip], ...] or None
+        self.normalize_returns = True  # the critic predicts in running return units
 
     def poca(self, *, team: dict[str, Any] = NotProvided, actor_hiddens=NotProvided,
              critic_hidden: int = NotProvided, critic_heads: int = NotProvided,
-             value_clip: float | None = NotProvided) -> POCAConfig:
+             value_clip: float | None = NotProvided,
+             normalize_returns: bool = NotProvided) -> POCAConfig:
         """POCA-specific settings; ``team`` comes from ``team_layout(env_config)``.
 
         ``value_clip``: how far V and b_i may move from their collection-time values per
-        update in the clipped regression (None: ``clip_param``, as ML-Agents; ``inf``: off).
+        update in the clipped regression (None: ``clip_param``, as ML-Agents; ``inf``: off),
+        in units of the running return statistics when ``normalize_returns`` (default).
         """
+        if normalize_returns is not NotProvided:
+            self.normalize_returns = bool(normalize_returns)
         if value_clip is not NotProvided:
             self.value_clip = None if value_clip is None else float(value_clip)
         if team is not NotProvided:
@@ -117,7 +122,8 @@ class POCAConfig(OverlappedSamplingConfig, PPOConfig):
             action_space=placeholder,
             model_config={"slot_kinds": team["slot_kinds"], "obs_dims": team["obs_dims"],
                           "act_dims": team["act_dims"], "hidden": self.critic_hidden,
-                          "heads": self.critic_heads})
+                          "heads": self.critic_heads,
+                          "normalize_returns": self.normalize_returns})
         return MultiRLModuleSpec(rl_module_specs=specs)
 
 
