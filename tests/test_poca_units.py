@@ -327,3 +327,44 @@ def test_return_normalisation_keeps_every_output_and_targets_denormalise_to_retu
         (1 - RETURN_STATS_RATE) * 120.0 + RETURN_STATS_RATE * 220.0)
     for a, b in zip(before, outputs()):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-3)
+
+
+def test_counterfactual_baseline_assigns_credit_to_the_agent_whose_action_counts():
+    """Two agents, one step: the team reward is 1 if agent 0's action is positive, whatever
+    agent 1 does. After POCA's critic regression, agent 0's advantage G - b_0 tracks its
+    own action and agent 1's G - b_1 is ~0 (b_1 sees agent 0's action and absorbs the
+    reward). With V as every agent's baseline, agent 1 gets as large an advantage as agent
+    0 for an action that did not matter: the credit POCA exists for."""
+    critic = _critic([0, 1], obs_dims=(3, 3), act_dims=(1, 1))
+    optimizer = torch.optim.Adam(critic.parameters(), lr=3e-3)
+    g = torch.Generator().manual_seed(1)
+    steps, present = 512, torch.ones(512, 2)
+    obs = torch.zeros(steps, 2, 3)
+
+    def play():
+        act = torch.rand(steps, 2, 1, generator=g) * 2 - 1
+        return act, (act[:, 0, 0] > 0).float()  # team reward, held by both agents
+
+    for _ in range(150):  # one POCA critic update per batch, as POCATargets sets it up
+        act, returns = play()
+        with torch.no_grad():
+            v, b = critic.group_heads(critic.encode(obs), act, present)
+            v, b = critic.denormalize(v), critic.denormalize(b)
+        critic.update_return_stats(returns)
+        critic.set_group_table(obs=obs, act=act, present=present,
+                               returns=critic.normalize(returns), old_values=critic.normalize(v),
+                               old_baselines=critic.normalize(b))
+        loss = critic.loss(torch.arange(steps), epsilon=0.2)["critic_loss"]
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    act, returns = play()
+    with torch.no_grad():
+        v, b = critic.group_heads(critic.encode(obs), act, present)
+        v, b = critic.denormalize(v), critic.denormalize(b)
+    own_action_counts = (act[:, 0, 0] > 0).float()
+    adv_0, adv_1 = returns - b[:, 0], returns - b[:, 1]
+    assert np.corrcoef(adv_0.numpy(), own_action_counts.numpy())[0, 1] > 0.95
+    assert adv_1.abs().mean() < 0.2 * adv_0.abs().mean()
+    adv_v = returns - v  # the same for both agents when V is the baseline
+    assert adv_v.abs().mean() > 0.8 * adv_0.abs().mean()
