@@ -69,7 +69,9 @@ def test_grid_size_is_conditions_times_seeds():
 @pytest.mark.parametrize("argv, message", [
     (["ablate", "algo", "--seeds", "0"], "seeds=0"),
     (["ablate", "hpo", "--trials", "0"], "trials=0"),
-    (["ablate", "comm", "--num-env-runners", "5"], "num_env_runners=5"),
+    # a run needs 1 + runners CPUs: one more than this machine has
+    (["ablate", "comm", "--num-env-runners", str(os.cpu_count())],
+     f"num_env_runners={os.cpu_count()} is invalid: allowed at most {os.cpu_count() - 1}"),
 ])
 def test_bad_study_input_fails_before_anything_is_written(tmp_path, capsys, argv, message):
     code = main([*argv, "--preset", "smoke", "--results", str(tmp_path)])
