@@ -2,7 +2,8 @@
 
 Per group of runs (an ablation study, a meta-MRSS experiment, loose training runs):
   * learning curves: evaluation coverage over env steps, mean +- std over seeds and a 95 %
-    CI band (mean +- 1.96 standard errors), the scripted greedy team as a reference line;
+    CI band (the t interval of the mean over seeds), the scripted greedy team as a reference
+    line;
   * a table per condition: runs, final coverage mean +- std, IQM with a stratified
     bootstrap 95 % CI, success rate with a Wilson 95 % CI over evaluation episodes, and
     the convergence verdict by the rule stated in the report (``CONVERGED``);
@@ -82,17 +83,21 @@ def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
             "success_ci": wilson_interval(successes, episodes), "episodes": episodes,
             "converged": (not math.isnan(mean)) and mean >= CONVERGED,
             "speed": float(np.mean(reached)) if reached else math.nan,
-            "speed_reached": len(reached), "finals": finals})
+            "speed_reached": len(reached), "finals": finals,
+            "tasks": [r.scenario for r in scored]})
     return rows
 
 
 def improvement_rows(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    finals = {r["condition"]: r["finals"] for r in rows}
+    by_cond = {r["condition"]: (r["finals"], r["tasks"]) for r in rows}
     out = []
     for a, b in spec.comparisons:
-        if finals.get(a) and finals.get(b):
-            out.append({"x": a, "y": b, "p": probability_of_improvement(finals[a], finals[b]),
-                        "ci": probability_of_improvement_ci(finals[a], finals[b])})
+        if a in by_cond and b in by_cond and by_cond[a][0] and by_cond[b][0]:
+            (xa, ta), (xb, tb) = by_cond[a], by_cond[b]
+            p = probability_of_improvement(xa, xb, ta, tb)
+            if not math.isnan(p):  # no common task: no comparison
+                out.append({"x": a, "y": b, "p": p,
+                            "ci": probability_of_improvement_ci(xa, xb, ta, tb)})
     return out
 
 
@@ -256,8 +261,11 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         add_comparison(data, compare)
     md = [f"# rl-scan report: {results_dir.name}", "",
           f"{len(data.runs)} runs read from `{results_dir}`. Scores are final-checkpoint "
-          "scores (each run's last evaluation); bands are ± 1 std (light) and a 95 % CI of "
-          "the mean (dark) over seeds. " + RULE, "", SPEED, "", DIFFERENCES, ""]
+          "scores (each run's last evaluation); bands are ± 1 std (light) and the 95 % t "
+          "interval of the mean (dark, n - 1 degrees of freedom) over seeds. P(X > Y) is "
+          "rliable's probability of improvement: per task (scenario) over all pairs of runs, "
+          "averaged over the tasks both conditions ran, with a bootstrap CI stratified by "
+          "task. " + RULE, "", SPEED, "", DIFFERENCES, ""]
     groups: dict[str, list[RunRecord]] = defaultdict(list)
     for r in data.runs:
         groups[r.group].append(r)

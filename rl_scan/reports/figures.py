@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from rl_scan.reports.collect import RunRecord
+from rl_scan.reports.stats import t_half_width
 
 CONVERGED = 0.80  # the convergence rule's coverage (dotted line)
 
@@ -25,7 +26,7 @@ def curve_band(runs: list[RunRecord]) -> tuple[np.ndarray, ...]:
         v = np.array([c[s] for c in curves if s in c])
         mean.append(v.mean())
         std.append(v.std())
-        half.append(1.96 * v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else 0.0)
+        half.append(t_half_width(v))
         count.append(len(v))
     return tuple(np.array(x) for x in (steps, mean, std, half, count))
 
