@@ -186,6 +186,9 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
     (tmp_path / "bench_env.json").write_text(json.dumps(
         {"load_avg_1m": 0.08, "core_steps_per_s": 25996.8, "rllib_steps_per_s": 18203.3,
          "pettingzoo_steps_per_s": 18138.9}))
+    (tmp_path / "bench_train.json").write_text(json.dumps(
+        {"load_avg_1m": 0.15, "runs": {"poca/fast": {"env_steps_per_s": 604.2,
+                                                     "tree_pss_mb": 1877.4}}}))
     rows = {r["condition"]: r for r in condition_rows(collect(tmp_path).runs)}
     assert rows["poca on ablation"]["speed"] == 30000 and rows["poca on ablation"][
         "speed_reached"] == 2
@@ -200,6 +203,7 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
         in md
     assert "poca_s0 |" not in md.split("Secondary")[1].split("| run | env steps")[0]
     assert "core 25,997, RLlib env 18,203, PettingZoo 18,139 env steps/s" in md
+    assert "(load 0.15) | poca/fast: 604 env steps/s, PSS 1,877 MB |" in md
 
 
 def test_an_earlier_report_is_drawn_tabled_and_compared_beside_new_runs(tmp_path):

@@ -220,9 +220,10 @@ def bench_lines(results_dir: Path) -> list[str]:
                       f"{data.get('pettingzoo_steps_per_s', math.nan):,.0f} env steps/s "
                       "(one core, random actions) |"]
         for label, run in (data.get("runs") or {}).items():
+            memory = (f"PSS {run['tree_pss_mb']:,.0f} MB" if "tree_pss_mb" in run
+                      else f"peak RSS {run.get('peak_rss_mb', math.nan):,.0f} MB")
             lines += [f"| training end to end, `{path.name}` (load {load:.2f}) | {label}: "
-                      f"{run.get('env_steps_per_s', math.nan):,.0f} env steps/s, peak RSS "
-                      f"{run.get('peak_rss_mb', math.nan):,.0f} MB |"]
+                      f"{run.get('env_steps_per_s', math.nan):,.0f} env steps/s, {memory} |"]
     return (["", "| benchmark | figures |", "|---|---|", *lines, ""] if lines else [])
 
 
