@@ -251,3 +251,18 @@ def test_a_partial_meta_mrss_experiment_says_what_is_missing(tmp_path):
     assert data.planned == {"mm/adapt": 4} and data.runs[0].condition == "poca"
     md = (build_report(tmp_path, reference=False) / "report.md").read_text()
     assert "Partial:** 1 of 4 planned runs" in md
+
+
+def test_curve_band_aligns_evaluations_a_few_steps_apart():
+    from pathlib import Path
+
+    from rl_scan.reports.collect import RunRecord
+    from rl_scan.reports.figures import curve_band
+
+    runs = [RunRecord("runs", "poca", seed, Path(f"r{seed}"),
+                      evals=[{"env_steps": s, "coverage": c} for s, c in curve])
+            for seed, curve in enumerate([[(20_004, 0.5), (780_003, 0.9)],
+                                          [(20_000, 0.7), (780_026, 0.95)]])]
+    steps, mean, _, _, count = curve_band(runs)
+    assert steps.tolist() == [20_000, 780_000] and count.tolist() == [2, 2]
+    assert mean.tolist() == pytest.approx([0.6, 0.925])

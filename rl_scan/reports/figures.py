@@ -14,10 +14,19 @@ from rl_scan.reports.stats import t_half_width
 CONVERGED = 0.80  # the convergence rule's coverage (dotted line)
 
 
+def _aligned(step: int) -> int:
+    """An evaluation's env steps to 3 significant digits: runs overshoot a batch by a few
+    steps (780,003 vs 780,000), which would put each at its own point with n = 1 or 2 and
+    a t band of 12.7 standard errors."""
+    if step <= 0:
+        return int(step)
+    return int(round(step, 2 - int(math.floor(math.log10(step)))))
+
+
 def curve_band(runs: list[RunRecord]) -> tuple[np.ndarray, ...]:
     """Steps, mean, std, 95 % CI half-width and run count of coverage at each evaluated
     step (runs of unequal length: the statistics use the runs that reached the step)."""
-    curves = [dict(r.curve) for r in runs if r.evals]
+    curves = [{_aligned(step): c for step, c in r.curve} for r in runs if r.evals]
     steps = sorted(set().union(*[set(c) for c in curves])) if curves else []
     if not steps:
         return (np.array([]),) * 5
