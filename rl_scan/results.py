@@ -56,6 +56,9 @@ SCAN_PREFIX = "scan/"  # episode metrics (rl_scan.metrics names) logged by the c
 EVAL_SCORE = "eval_coverage"  # the latest evaluation's mean coverage (checkpoint score)
 EVALUATED = "evaluated"  # True in the results of an iteration that ran an evaluation
 LEARNER_THREADS = "learner_threads"  # torch threads of the training process (learner_cpus)
+LEARNERS = "learners"  # RLlib's per-module learner results: learners/<module>/<key>
+EV_VALUE = "explained_variance_v"  # POCA, under the critic: V at sampling time vs returns
+EV_BASELINE = "explained_variance_baseline"  # POCA, under each actor module: its b_i
 META_BEFORE = "meta/coverage_before_adaptation"  # MetaPOCA: support episodes' coverage
 META_AFTER = "meta/coverage_after_adaptation"  # MetaPOCA: query episodes' coverage
 
@@ -159,12 +162,35 @@ def run_meta_of(path: Path) -> dict[str, Any]:
     return (read_yaml(folder / RUN_FILE) or {}) if folder else {}
 
 
-def progress_tail(folder: Path) -> tuple[int, float]:
-    """(env steps, wall seconds) of the last Tune progress row anywhere under ``folder``."""
+def progress_rows(folder: Path) -> list[dict[str, str]]:
+    """Every Tune progress row anywhere under ``folder`` (Tune flattens nested results
+    with "/": ``learners/critic/explained_variance_v``)."""
     rows: list[dict[str, str]] = []
     for path in sorted(Path(folder).glob(f"**/{PROGRESS_FILE}")):
         with open(path) as f:
             rows += list(csv.DictReader(f))
+    return rows
+
+
+def critic_diagnostics(rows: list[dict[str, str]]) -> dict[str, list[tuple[int, float]]]:
+    """POCA's explained variances over training from progress rows: ``V`` and ``b_<kind>``
+    -> [(env steps, value)] (empty for runs without a POCA critic)."""
+    out: dict[str, list[tuple[int, float]]] = {}
+    for row in sorted(rows, key=lambda r: float(r.get(ENV_STEPS) or 0)):
+        for key, value in row.items():
+            parts = key.split("/")
+            if len(parts) != 3 or parts[0] != LEARNERS or value in ("", None):
+                continue
+            name = ("V" if parts[2] == EV_VALUE else
+                    f"b_{parts[1]}" if parts[2] == EV_BASELINE else None)
+            if name is not None and not math.isnan(float(value)):
+                out.setdefault(name, []).append((int(float(row[ENV_STEPS])), float(value)))
+    return out
+
+
+def progress_tail(folder: Path) -> tuple[int, float]:
+    """(env steps, wall seconds) of the last Tune progress row anywhere under ``folder``."""
+    rows = progress_rows(folder)
     if not rows:
         return 0, math.nan
     last = max(rows, key=lambda r: float(r.get(ENV_STEPS) or 0))

@@ -12,9 +12,9 @@ from ray.rllib.utils.metrics.metrics_logger import MetricsLogger
 
 from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca import poca_config
-from rl_scan.algorithms.poca.connectors import EV_BASELINE, EV_VALUE
 from rl_scan.algorithms.poca.losses import explained_variance, lambda_returns, standardize
 from rl_scan.algorithms.poca.modules import CRITIC_ID
+from rl_scan.results import EV_BASELINE, EV_VALUE
 
 
 def _runner_and_learner(team, **env):

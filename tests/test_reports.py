@@ -266,3 +266,24 @@ def test_curve_band_aligns_evaluations_a_few_steps_apart():
     steps, mean, _, _, count = curve_band(runs)
     assert steps.tolist() == [20_000, 780_000] and count.tolist() == [2, 2]
     assert mean.tolist() == pytest.approx([0.6, 0.925])
+
+
+def test_critic_diagnostics_are_read_from_progress_and_tabled(tmp_path):
+    """POCA's explained variances (Tune's flattened learners/<module>/<key> columns) per
+    condition: last value averaged over runs, and when V first explained half."""
+    ev_v, ev_b = f"{R.LEARNERS}/critic/{R.EV_VALUE}", f"{R.LEARNERS}/quad/{R.EV_BASELINE}"
+    for seed, values in enumerate([[(0.1, 0.2), (0.6, 0.7), (0.8, 0.9)],
+                                   [(0.2, 0.1), (0.4, 0.3), (0.55, 0.5)]]):
+        _run(tmp_path, f"poca_s{seed}", "poca", seed, [0.5, 0.7, 0.9])
+        lines = [f"training_iteration,{R.ENV_STEPS},time_total_s,{ev_v},{ev_b}"]
+        lines += [f"{i + 1},{20000 * (i + 1)},{10 * (i + 1)},{v},{b}"
+                  for i, (v, b) in enumerate(values)]
+        trial = tmp_path / f"poca_s{seed}" / R.TUNE_DIR / R.TRAIN_TRIAL
+        (trial / R.PROGRESS_FILE).write_text("\n".join(lines) + "\n")
+    runs = collect(tmp_path).runs
+    assert runs[0].critic == {"V": [(20000, 0.1), (40000, 0.6), (60000, 0.8)],
+                              "b_quad": [(20000, 0.2), (40000, 0.7), (60000, 0.9)]}
+    md = (build_report(tmp_path, reference=False) / "report.md").read_text()
+    # last V: (0.8 + 0.55) / 2, last b_quad: (0.9 + 0.5) / 2; EV V >= 0.5 at 40k and 60k
+    assert "| EV V | EV b_quad | env steps to EV V >= 0.5 (reached) |" in md
+    assert "| poca on ablation | 0.68 | 0.70 | 50,000 (2/2) |" in md

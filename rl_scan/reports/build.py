@@ -189,6 +189,39 @@ def marl_eval_json(runs: list[RunRecord]) -> dict[str, Any]:
     return out
 
 
+EV_GOAL = 0.5  # issue 14: the critic's V should explain half of the returns' variance
+
+
+def critic_lines(runs: list[RunRecord]) -> list[str]:
+    """POCA's critic diagnostics per condition: explained variance of V and of each kind's
+    b_i at the last iteration (mean over runs), and when V first explained half."""
+    by_cond: dict[str, list[RunRecord]] = defaultdict(list)
+    for r in runs:
+        if r.critic:
+            by_cond[r.condition].append(r)
+    if not by_cond:
+        return []
+    names = sorted({n for rs in by_cond.values() for r in rs for n in r.critic},
+                   key=lambda n: (n != "V", n))
+    lines = ["", "Critic diagnostics (POCA): explained variance of V and of each kind's "
+             "baseline b_i against the returns of each update, at the last iteration (mean "
+             f"over runs), and the env steps when V first explained {EV_GOAL:.0%} of their "
+             "variance.", "",
+             "| condition | " + " | ".join(f"EV {n}" for n in names)
+             + f" | env steps to EV V >= {EV_GOAL} (reached) |",
+             "|---|" + "---|" * (len(names) + 1)]
+    for cond, rs in sorted(by_cond.items()):
+        finals = [np.mean([r.critic[n][-1][1] for r in rs if n in r.critic] or [math.nan])
+                  for n in names]
+        reached = [next((s for s, v in r.critic.get("V", []) if v >= EV_GOAL), math.nan)
+                   for r in rs]
+        hit = [x for x in reached if not math.isnan(x)]
+        lines.append(f"| {cond} | " + " | ".join(f"{x:.2f}" for x in finals)
+                     + f" | {_fmt(float(np.mean(hit)) if hit else math.nan, False)} "
+                       f"({len(hit)}/{len(rs)}) |")
+    return lines
+
+
 def add_comparison(data: Collection, compare: str | Path) -> None:
     """Add an earlier report's runs (``read_marl_eval``) and compare each condition of
     this report with its namesake there."""
@@ -290,6 +323,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         rows = condition_rows(runs)
         md += _table(rows, spec)
         md += best_checkpoint_table(runs)
+        md += critic_lines(runs)
         if ref is not None and not math.isnan(ref):
             md += ["", f"Scripted greedy team on {scenarios[0]}: {100 * ref:.1f} % coverage."]
         imp = improvement_rows(spec, rows)

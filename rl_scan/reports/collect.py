@@ -37,6 +37,8 @@ class RunRecord:
     scenario: str = ""
     algo: str = ""
     best_eval: dict[str, Any] | None = None  # BEST_EVAL_FILE (evaluate --best)
+    critic: dict[str, list[tuple[int, float]]] = field(default_factory=dict)
+    """POCA's explained variances over training ("V", "b_<kind>"), from Tune's progress."""
 
     @property
     def curve(self) -> list[tuple[int, float]]:
@@ -70,6 +72,7 @@ class Collection:
 def read_run(folder: Path, group: str, condition: str) -> RunRecord:
     meta = R.read_yaml(folder / R.RUN_FILE) or {}
     steps, seconds = R.progress_tail(R.tune_trial_dir(folder))
+    critic = R.critic_diagnostics(R.progress_rows(R.tune_trial_dir(folder)))
     return RunRecord(group=group, condition=condition, seed=int(meta.get("seed", 0)),
                      path=folder, evals=R.read_evals(folder),
                      eval_episodes=int((meta.get("preset_config") or {}).get(
@@ -77,7 +80,7 @@ def read_run(folder: Path, group: str, condition: str) -> RunRecord:
                      env_steps=steps, time_total_s=seconds,
                      scenario=(meta.get("env_config") or {}).get("scenario", ""),
                      algo=meta.get("algo", ""),
-                     best_eval=R.read_json(folder / R.BEST_EVAL_FILE))
+                     best_eval=R.read_json(folder / R.BEST_EVAL_FILE), critic=critic)
 
 
 def trial_condition(params: dict[str, Any]) -> str:

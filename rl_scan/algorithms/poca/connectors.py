@@ -25,6 +25,7 @@ from ray.rllib.evaluation.postprocessing import Postprocessing
 from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca.losses import explained_variance, lambda_returns, standardize
 from rl_scan.algorithms.poca.modules import CRITIC_ID, TRAIN_TABLE
+from rl_scan.results import EV_BASELINE, EV_VALUE
 
 
 class AddGroupColumns(ConnectorV2):
@@ -86,8 +87,6 @@ class AddGroupColumns(ConnectorV2):
         return batch
 
 
-EV_VALUE = "explained_variance_v"  # logged under the critic: V at sampling time vs returns
-EV_BASELINE = "explained_variance_baseline"  # logged under each actor module: its b_i
 TARGET_CHUNK = 256  # steps per no-grad critic pass: cache-sized blocks run ~25% faster
 
 
