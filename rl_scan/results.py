@@ -188,9 +188,11 @@ def critic_diagnostics(rows: list[dict[str, str]]) -> dict[str, list[tuple[int, 
     return out
 
 
-def progress_tail(folder: Path) -> tuple[int, float]:
-    """(env steps, wall seconds) of the last Tune progress row anywhere under ``folder``."""
-    rows = progress_rows(folder)
+def progress_tail(folder: Path, rows: list[dict[str, str]] | None = None
+                  ) -> tuple[int, float]:
+    """(env steps, wall seconds) of the last Tune progress row anywhere under ``folder``
+    (or of ``rows`` already read from it)."""
+    rows = progress_rows(folder) if rows is None else rows
     if not rows:
         return 0, math.nan
     last = max(rows, key=lambda r: float(r.get(ENV_STEPS) or 0))

@@ -71,8 +71,9 @@ class Collection:
 
 def read_run(folder: Path, group: str, condition: str) -> RunRecord:
     meta = R.read_yaml(folder / R.RUN_FILE) or {}
-    steps, seconds = R.progress_tail(R.tune_trial_dir(folder))
-    critic = R.critic_diagnostics(R.progress_rows(R.tune_trial_dir(folder)))
+    rows = R.progress_rows(R.tune_trial_dir(folder))  # read once: tail and diagnostics
+    steps, seconds = R.progress_tail(folder, rows)
+    critic = R.critic_diagnostics(rows)
     return RunRecord(group=group, condition=condition, seed=int(meta.get("seed", 0)),
                      path=folder, evals=R.read_evals(folder),
                      eval_episodes=int((meta.get("preset_config") or {}).get(
