@@ -16,7 +16,7 @@ import pytest
 from rl_scan import results as R
 from rl_scan.cli import main
 from rl_scan.studies import STUDIES, TrialRun
-from rl_scan.tuning.ablate import search_space
+from rl_scan.tuning.ablate import only_conditions, search_space
 from rl_scan.tuning.driver import make_run_spec
 
 
@@ -58,6 +58,24 @@ def test_the_reward_study_crosses_reward_mode_with_the_algorithm():
         spec.algorithm_config()
     assert ("poca/team", "poca/individual") in study.report.comparisons
     assert search_space(study, 3)[2] == 12
+
+
+def test_a_study_can_run_a_subset_of_its_conditions():
+    study = only_conditions(STUDIES["reward"], ["ppo/team", "poca/team", "ppo/team"])
+    assert study.conditions == ("ppo/team", "poca/team")  # order kept, repeats dropped
+    assert search_space(study, 3)[2] == 6
+    assert only_conditions(STUDIES["team"], None) is STUDIES["team"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["ablate", "reward", "--conditions", "poca/team,poca/teem"],
+     "conditions='poca/teem' is invalid: allowed conditions of reward: poca/individual"),
+    (["ablate", "hpo", "--conditions", "x"], "conditions='x' is invalid: allowed none: hpo"),
+])
+def test_unknown_conditions_are_named_before_ray_starts(tmp_path, capsys, argv, message):
+    code = main([*argv, "--preset", "smoke", "--results", str(tmp_path)])
+    assert code == 2 and message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
 
 
 def test_grid_size_is_conditions_times_seeds():

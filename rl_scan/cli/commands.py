@@ -338,7 +338,7 @@ def ablate_cmd(args: argparse.Namespace) -> int:
     folder = ablate(args.study, args.preset, seeds=args.seeds, trials=args.trials,
                     results_dir=args.results, name=args.name, address=args.address,
                     resume=args.resume, env_config=env_mapping_from_args(args),
-                    preset_overrides=overrides)
+                    preset_overrides=overrides, conditions=args.conditions)
     print(f"done: {folder}  (optuna-dashboard sqlite:///{folder / OPTUNA_DB})")
     return 0
 

@@ -11,7 +11,9 @@ checkpoint.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,16 +45,34 @@ def search_space(study: Study, seeds: int):
     return space, optuna.samplers.TPESampler(seed=0), None
 
 
+def only_conditions(study: Study, conditions: Sequence[str] | None) -> Study:
+    """The study restricted to ``conditions`` (checked against its own; order kept)."""
+    if not conditions:
+        return study
+    if not study.is_grid:
+        fail("conditions", ",".join(conditions), f"none: {study.name} is a search study")
+    unknown = [c for c in conditions if c not in study.conditions]
+    if unknown:
+        fail("conditions", ",".join(unknown), f"conditions of {study.name}: "
+             + ", ".join(study.conditions))
+    return dataclasses.replace(study, conditions=tuple(dict.fromkeys(conditions)))
+
+
 def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trials: int = 8,
            results_dir: str | Path = "results", name: str | None = None,
            address: str | None = None, resume: bool = False,
            env_config: dict[str, Any] | None = None,
-           preset_overrides: dict[str, Any] | None = None, console=None) -> Path:
-    """Run (or resume) one ablation study; returns its folder."""
+           preset_overrides: dict[str, Any] | None = None,
+           conditions: Sequence[str] | None = None, console=None) -> Path:
+    """Run (or resume) one ablation study; returns its folder.
+
+    ``conditions`` runs a subset of a grid study's conditions (all by default), e.g. only
+    the team-reward half of ``reward``; the report compares what ran.
+    """
     from rich.console import Console
 
     console = console or Console()
-    study = get_study(study_name)
+    study = only_conditions(get_study(study_name), conditions)
     check_range("seeds", seeds, 1, 100)
     check_range("trials", trials, 1, 10_000)
     base = make_run_spec("poca", env_config, preset_name, preset_overrides=preset_overrides)
@@ -77,6 +97,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
         folder.mkdir(parents=True)
         R.write_yaml(folder / R.STUDY_FILE, {
             "study": study.name, "preset": preset_name, "seeds": seeds, "trials": num_samples,
+            "conditions": list(study.conditions),
             "evaluation_episodes": preset.evaluation_episodes,
             "env_config": dict(env_config or {}), "preset_overrides": preset_overrides or {},
             "git_commit": git_commit(), "started": time.strftime("%Y-%m-%d %H:%M:%S")})
