@@ -156,16 +156,23 @@ def test_sigkill_then_resume_continues_from_the_last_checkpoint(tmp_path):
     assert restored_from + 1 in logged  # the first iteration after the restore
 
 
-def test_an_env_error_is_survived_through_failure_config(ray_session, tmp_path):
-    """The env raises once mid-run; Tune restores the trial from its checkpoint and goes on."""
+def test_an_env_error_after_a_checkpoint_is_survived_by_restoring_it(ray_session, tmp_path):
+    """The env raises once in iteration 2 (its 300th step; 200 per iteration), after the
+    checkpoint of iteration 1: Tune marks the trial failed and FailureConfig restores that
+    checkpoint, so the log goes on at iteration 2 instead of starting again at 1."""
     marker = tmp_path / "crashed"
-    run_dir = train("ppo", {"fault_at_step": 30, "fault_once_file": str(marker)}, "smoke",
+    run_dir = train("ppo", {"fault_at_step": 300, "fault_once_file": str(marker)}, "smoke",
                     results_dir=tmp_path, preset_overrides={"total_env_steps": 1600})
     assert marker.exists()  # the fault did happen
+    trial = R.tune_trial_dir(run_dir)
+    assert "injected env fault at step 300" in (trial / "error.txt").read_text()
     rows = _progress(run_dir)
-    assert int(float(rows[-1][R.ENV_STEPS])) == 1600
+    iters = [int(r["training_iteration"]) for r in rows]
+    steps = [int(float(r[R.ENV_STEPS])) for r in rows]
+    # a restart from scratch would log iteration 1 (400 env steps) twice
+    assert iters == [1, 2, 3, 4] and steps == [400, 800, 1200, 1600]
     evals = json.loads((run_dir / R.EVAL_FILE).read_text())
-    assert evals[-1]["training_iteration"] == 4
+    assert [e["training_iteration"] for e in evals] == [1, 2, 3, 4]
 
 
 def test_default_run_names_are_folder_safe():

@@ -57,6 +57,7 @@ class ScanCore:
         first = "train:0" if self.scenario_name == "train:*" else self.scenario_name
         self.world = self._world(first)  # fail fast on a bad scenario
         self.done = True
+        self.lifetime_steps = 0  # over all episodes: what fault_at_step counts
 
     # ------------------------------------------------------------------ worlds
     def _world(self, name: str) -> World:
@@ -144,7 +145,8 @@ class ScanCore:
         self.returns += rewards
         self.collisions += hit
         self.t += 1
-        if self.t == cfg.fault_at_step:
+        self.lifetime_steps += 1
+        if self.lifetime_steps == cfg.fault_at_step:
             self._inject_fault()
         scanned = world.n_scanned
         while self._thresholds and scanned >= self._thresholds[0] * world.n_cells:
@@ -167,7 +169,8 @@ class ScanCore:
             return
         if marker is not None:
             marker.touch()
-        raise RuntimeError(f"injected env fault at step {self.t} (fault_at_step)")
+        raise RuntimeError(f"injected env fault at step {self.lifetime_steps} of this env "
+                           "(fault_at_step)")
 
     def _split(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         return {aid: obs[i, :self._dims[aid]].copy() for i, aid in enumerate(self.agent_ids)}

@@ -66,7 +66,8 @@ class EnvConfig:
     start_jitter: float = 0.5
     """Uniform noise (metres, per axis) on start positions at each reset (assumed); 0 = fixed."""
     fault_at_step: int = 0
-    """Testing fault tolerance: raise an error at this step of an episode (0 = never)..."""
+    """Testing fault tolerance: raise an error at this step of the env's life, counted over
+    all its episodes (0 = never), so a fault can land after a run's first checkpoint..."""
     fault_once_file: str = ""
     """...once: the error creates this file and does not recur while it exists."""
     wheeled: RobotSpec = field(default_factory=default_wheeled)
