@@ -40,6 +40,7 @@ PROTOCOL_FILE = "protocol.yaml"  # a meta-MRSS experiment's plan (methods, tests
 PRETRAIN_DIR, ADAPT_DIR = "pretrain", "adapt"
 SUMMARY_FILE, TABLE_FILE = "summary.json", "table.md"
 DONE = "DONE"  # a finished run of an experiment (skipped when the experiment is re-run)
+NONFINITE_FILE = "nonfinite_loss.txt"  # in a trial folder: why it stopped (never retried)
 LOG_DIR = "logs"  # stderr of every experiment run started in a child process
 
 # Keys of RLlib's training results (``Algorithm.train()``) that rl-scan reads.

@@ -175,6 +175,35 @@ def test_an_env_error_after_a_checkpoint_is_survived_by_restoring_it(ray_session
     assert [e["training_iteration"] for e in evals] == [1, 2, 3, 4]
 
 
+def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(ray_session,
+                                                                           tmp_path):
+    """A NaN reward in iteration 2 makes its losses NaN: the run stops with the loss named,
+    iteration 2 writes no checkpoint, the kept one (iteration 1) has finite weights, and no
+    FailureConfig retry trains again (with the once-file a retry would not meet the NaN
+    again and would finish the run)."""
+    import torch
+
+    from rl_scan.algorithms.rollout import load_actors
+
+    marker = tmp_path / "nan_given"
+    with pytest.raises(RuntimeError, match=r"(?s)training failed: .*loss=nan for module .* at "
+                                           r"training iteration 2.*not retried"):
+        train("ppo", {"fault_at_step": 300, "fault_kind": "nan_reward",
+                      "fault_once_file": str(marker)}, "smoke", results_dir=tmp_path,
+              name="run", preset_overrides={"total_env_steps": 1600})
+    assert marker.exists()
+    run_dir = tmp_path / "run"
+    assert [int(r["training_iteration"]) for r in _progress(run_dir)] == [1]
+    trial = R.tune_trial_dir(run_dir)
+    assert "at training iteration 2" in (trial / R.NONFINITE_FILE).read_text()
+    checkpoints = sorted(trial.glob("checkpoint_*"))
+    assert [c.name for c in checkpoints] == ["checkpoint_000000"]  # iteration 1's
+    actors = load_actors(checkpoints[0])
+    assert set(actors) == {"wheeled", "quad"}
+    for module in actors.values():
+        assert all(torch.isfinite(p).all() for p in module.parameters())
+
+
 def test_default_run_names_are_folder_safe():
     from rl_scan.tuning.launch import scenario_label
 

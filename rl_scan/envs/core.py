@@ -146,8 +146,8 @@ class ScanCore:
         self.collisions += hit
         self.t += 1
         self.lifetime_steps += 1
-        if self.lifetime_steps == cfg.fault_at_step:
-            self._inject_fault()
+        if self.lifetime_steps == cfg.fault_at_step and self._inject_fault():
+            rewards = np.full(len(rewards), np.nan)
         scanned = world.n_scanned
         while self._thresholds and scanned >= self._thresholds[0] * world.n_cells:
             self.steps_to[self._thresholds.pop(0)] = float(self.t)
@@ -162,13 +162,16 @@ class ScanCore:
                 infos[aid] = {"episode_metrics": summary}
         return self._split(obs), rew, terminated, truncated, infos
 
-    def _inject_fault(self) -> None:
-        """Raise once (see EnvConfig.fault_at_step): lets tests exercise fault tolerance."""
+    def _inject_fault(self) -> bool:
+        """Raise, or return True for a NaN reward (EnvConfig.fault_*), at most once with a
+        ``fault_once_file``: lets tests exercise fault tolerance and the NaN guard."""
         marker = Path(self.config.fault_once_file) if self.config.fault_once_file else None
         if marker is not None and marker.exists():
-            return
+            return False
         if marker is not None:
             marker.touch()
+        if self.config.fault_kind == "nan_reward":
+            return True
         raise RuntimeError(f"injected env fault at step {self.lifetime_steps} of this env "
                            "(fault_at_step)")
 

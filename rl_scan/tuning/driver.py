@@ -125,6 +125,14 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
         spec = spec.for_trial(study, params)
     import torch
 
+    from rl_scan.algorithms.callbacks import NonFiniteLossError
+
+    # A non-finite loss is not retried by FailureConfig: it would recur from the same
+    # checkpoint. The first failure leaves its message here; a retry only repeats it.
+    stopped = Path(tune.get_context().get_trial_dir()) / R.NONFINITE_FILE
+    if stopped.is_file():
+        raise NonFiniteLossError(f"{stopped.read_text()} (not retried: it would recur "
+                                 "from the same checkpoint)")
     preset = spec.preset
     torch.set_num_threads(preset.learner_cpus)  # as many threads as reserved CPUs
     algorithm = spec.algorithm_config().build_algo()
@@ -149,6 +157,9 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
                 tune.report(result)
             if done:
                 return
+    except NonFiniteLossError as error:
+        stopped.write_text(str(error))
+        raise
     finally:
         algorithm.stop()
 

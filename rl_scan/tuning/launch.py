@@ -140,8 +140,8 @@ def train_spec(spec: RunSpec, *, results_dir: str | Path = "results", name: str 
                   f"{preset.iterations} iterations -> {run_dir}")
     grid = tuner.fit()
     errors = [r.error for r in grid if r.error]
-    if errors:
-        raise RuntimeError(f"training failed: {errors[0]}")
+    if errors:  # the cause's own line, not Ray's traceback around it
+        raise RuntimeError(f"training failed: {str(errors[0]).strip().splitlines()[-1]}")
     steps = max((int(r.metrics.get(R.ENV_STEPS, 0)) for r in grid), default=0)
     if steps < preset.total_env_steps:  # Tune ends a run quietly on Ctrl+C
         raise RunInterrupted(f"{name} stopped at {steps:,} of {preset.total_env_steps:,} "

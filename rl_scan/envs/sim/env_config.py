@@ -70,6 +70,8 @@ class EnvConfig:
     all its episodes (0 = never), so a fault can land after a run's first checkpoint..."""
     fault_once_file: str = ""
     """...once: the error creates this file and does not recur while it exists."""
+    fault_kind: Literal["raise", "nan_reward"] = "raise"
+    """What the fault is: an exception, or a NaN reward for every robot (a non-finite loss)."""
     wheeled: RobotSpec = field(default_factory=default_wheeled)
     quad: RobotSpec = field(default_factory=default_quad)
     scenario_distribution: ScenarioDistribution = field(default_factory=ScenarioDistribution)
@@ -92,6 +94,8 @@ class EnvConfig:
                      f"a multiple of cell_size={self.cell_size}")
         check_range(prefix + "start_jitter", self.start_jitter, 0.0, 2.0)
         check_range(prefix + "fault_at_step", self.fault_at_step, 0)
+        if self.fault_kind not in ("raise", "nan_reward"):
+            fail(prefix + "fault_kind", self.fault_kind, "'raise' or 'nan_reward'")
         if self.quad.altitude > self.arena[2] - self.quad.radius:
             fail(prefix + "quad.altitude", self.quad.altitude,
                  f"at most arena height - radius = {self.arena[2] - self.quad.radius}")
