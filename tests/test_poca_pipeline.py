@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -107,7 +109,13 @@ def test_one_update_moves_actors_and_critic():
     for m, params in before.items():
         after = list(learner.module[m].parameters())
         assert any(not torch.equal(a, b) for a, b in zip(after, params)), m
-    assert results is not None
+    for kind in ("wheeled", "quad"):  # the actor loss as logged, from its parts by hand
+        r = {k: float(v) for k, v in results[kind].items() if k in (
+            "total_loss", "policy_loss", "entropy", "entropy_coeff")}
+        assert r["total_loss"] == pytest.approx(r["policy_loss"] - 0.005 * r["entropy"],
+                                                abs=1e-6)
+        # an untrained Gaussian (log std ~ 0): mean entropy per dimension 0.5 ln(2 pi e)
+        assert r["entropy"] == pytest.approx(0.5 * math.log(2 * math.pi * math.e), abs=2e-3)
 
 
 @pytest.mark.parametrize("poison", [False, True])

@@ -54,10 +54,28 @@ def test_poca_smoke_preset_through_tune(ray_session, tmp_path):
 
 
 def test_poca_runs_on_another_env_mpe_simple_spread(ray_session):
-    """POCA is not tied to the scanning env: it trains on PettingZoo MPE (3 agents)."""
-    from rl_scan.cli.bench_mpe import train_mpe
+    """POCA is not tied to the scanning env: it trains on PettingZoo MPE (3 agents), and its
+    group reward there is the sum of the three agents' rewards."""
+    import numpy as np
+    from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
+
+    from rl_scan.algorithms.poca import columns as C
+    from rl_scan.cli.bench_mpe import MODULE, mpe_config, train_mpe
 
     curve = train_mpe("poca", 0, env_steps=400, train_batch_size=200, minibatch_size=128,
                       num_epochs=1, hiddens=[16, 16])
-    assert [s for s, _ in curve] == [200, 400]
-    assert all(math.isfinite(r) and r < 0 for _, r in curve)  # simple_spread returns are < 0
+    assert [s for s, _ in curve] == [200, 400]  # one batch of 200 env steps per iteration
+    assert all(r < 0 for _, r in curve)  # simple_spread rewards are minus distances
+
+    config = mpe_config("poca", 0, train_batch_size=50, minibatch_size=50, num_epochs=1,
+                        hiddens=[16, 16])
+    runner = MultiAgentEnvRunner(config=config)
+    learner = config.build_learner(env=None, spaces=runner.get_spaces())
+    episodes = runner.sample(num_timesteps=50, random_actions=False)
+    rows = learner._learner_connector(rl_module=learner.module, batch={}, episodes=episodes,
+                                      shared_data={})[MODULE]
+    ep = episodes[0]
+    per_agent = [np.asarray(sa.get_rewards()) for sa in ep.agent_episodes.values()]
+    assert len(per_agent) == 3
+    np.testing.assert_allclose(rows[C.GROUP_REW].numpy()[:len(per_agent[0])],
+                               sum(per_agent), rtol=1e-6)
