@@ -10,6 +10,7 @@ import trimesh
 from PIL import Image
 
 from rl_scan.cli import main
+from rl_scan.envs.sim.env_config import EnvConfig
 
 
 def run(capsys, *argv):
@@ -35,8 +36,9 @@ def test_scenario_export_yaml_round_trips(capsys, tmp_path):
         line for line in reloaded.splitlines() if "cells (arena" in line][0].split("'")[2]
 
 
-def test_scenario_export_mesh(capsys, tmp_path):
-    path = tmp_path / "scene.obj"
+@pytest.mark.parametrize("suffix", [".obj", ".glb", ".stl", ".ply"])
+def test_scenario_export_mesh(capsys, tmp_path, suffix):
+    path = tmp_path / f"scene{suffix}"
     assert run(capsys, "scenario", "export", "ablation", str(path))[0] == 0
     mesh = trimesh.load(path, force="mesh")
     np.testing.assert_allclose(mesh.bounds, [[5.0, 4.5, 0.0], [15.0, 15.0, 3.0]])
@@ -82,6 +84,26 @@ def test_bad_input_is_one_clear_line(capsys, argv, needle):
     code, out, err = run(capsys, *argv)
     assert code == 2 and out == ""
     assert needle in err and len(err.strip().splitlines()) == 1
+
+
+def test_an_env_config_yaml_sets_fields_and_flags_override_it(tmp_path, capsys):
+    from rl_scan.cli.env_args import env_config_from_args
+    from rl_scan.cli.parser import build_parser
+
+    path = tmp_path / "env.yaml"
+    path.write_text("scenario: 'test:1'\nmax_steps: 77\nteam: {wheeled: 1, quad: 3}\n"
+                    "quad: {sensor_range: 3.0}\n")
+    env = env_config_from_args(build_parser().parse_args(["train", "--config", str(path)]))
+    assert (env.scenario, env.max_steps, env.team.wheeled, env.team.quad,
+            env.quad.sensor_range) == ("test:1", 77, 1, 3, 3.0)
+    assert env.quad.max_speed == EnvConfig().quad.max_speed  # partial nested: rest kept
+    env = env_config_from_args(build_parser().parse_args(
+        ["train", "--config", str(path), "--team", "2,2", "--set", "max_steps=5"]))
+    assert (env.scenario, env.max_steps, env.team.wheeled, env.quad.sensor_range) == (
+        "test:1", 5, 2, 3.0)
+    path.write_text("max_stepz: 5\n")
+    code, _, err = run(capsys, "scenario", "show", "ablation", "--config", str(path))
+    assert code == 2 and "max_stepz" in err
 
 
 @pytest.mark.parametrize("argv", [[], ["scenario"], ["bench", "env"], ["render"]])

@@ -209,3 +209,38 @@ def test_bad_meta_settings_fail_before_building():
         meta_poca_config({}, tasks=1, episodes=1, meta_epochs=0).validate()
     with pytest.raises(ConfigError, match="num_env_runners"):
         meta_poca_config({}, tasks=1, episodes=1, num_env_runners=1).validate()
+
+
+def test_a_restored_run_draws_the_tasks_the_uninterrupted_run_draws(ray_session, tmp_path,
+                                                                    monkeypatch):
+    """Iteration 2's tasks are the same whether the run went on or was saved after
+    iteration 1 and restored into a new algorithm (what Tune does on resume)."""
+    from rl_scan.algorithms.maml import meta_poca
+
+    drawn: list[str] = []
+    real = meta_poca.set_task
+
+    def recording(env_runner, scenario):  # the real setter, noting what it set
+        drawn.append(scenario)
+        real(env_runner, scenario)
+
+    monkeypatch.setattr(meta_poca, "set_task", recording)
+    config = meta_poca_config({"max_steps": 12}, tasks=3, episodes=1, meta_epochs=1,
+                              task_pool=50, num_envs_per_env_runner=1, seed=4)
+
+    def second_iteration_tasks(algo) -> list[str]:
+        drawn.clear()
+        algo.train()
+        return [s for s in drawn if s.startswith("train:")]
+
+    straight = config.build_algo()
+    straight.train()
+    straight.save_to_path(tmp_path / "ckpt")
+    expected = second_iteration_tasks(straight)
+    straight.stop()
+    restored = config.build_algo()
+    restored.restore_from_path(tmp_path / "ckpt")
+    assert second_iteration_tasks(restored) == expected and len(expected) == 3
+    first = restored.meta_tasks_of(0)
+    restored.stop()
+    assert expected != first  # tasks change from one iteration to the next

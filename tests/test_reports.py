@@ -12,7 +12,7 @@ import yaml
 
 from rl_scan import results as R
 from rl_scan.config import ConfigError
-from rl_scan.reports.build import build_report, condition_rows
+from rl_scan.reports.build import build_report, condition_rows, greedy_reference
 from rl_scan.reports.collect import collect
 from rl_scan.reports.stats import (
     iqm,
@@ -139,6 +139,21 @@ def test_report_on_a_synthetic_study(tmp_path):
     step = runs["run_0"]["step_1"]  # trial folders sorted: poca seed 0 first
     assert step["step_count"] == 40000 and step["coverage"] == [0.96]
     assert runs["run_0"]["absolute_metrics"] == {"coverage": [0.96], "success": [1.0]}
+
+
+def test_the_greedy_reference_line_is_the_greedy_teams_mean_coverage(tmp_path):
+    from rl_scan.envs.core import ScanCore
+    from rl_scan.envs.episode import run_episode
+    from rl_scan.envs.heuristics import GreedyTeam
+
+    _study(tmp_path, {"poca": [0.9, 0.8], "ppo": [0.7, 0.6]})
+    md = (build_report(tmp_path) / "report.md").read_text()
+    core = ScanCore({"scenario": "ablation"})
+    greedy = np.mean([run_episode(core, GreedyTeam(core), seed=s)["coverage"]
+                      for s in range(3)])
+    assert 0.9 < greedy <= 1.0
+    assert f"Scripted greedy team on ablation: {100 * greedy:.1f} % coverage." in md
+    assert math.isnan(greedy_reference(str(tmp_path / "moved.yaml")))  # no line, no error
 
 
 def test_comm_report_compares_scheme_1_with_each_scheme_on_one_panel_each(tmp_path):

@@ -77,6 +77,19 @@ def test_round_shapes_are_symmetric_under_quarter_turns(shape):
     assert np.array_equal(block, block[::-1, :, :])
 
 
+def test_hull_shapes_by_hand():
+    """The hull of the unit cube's corners is the box; a corner tetrahedron is a sixth."""
+    corners = [(x, y, z) for x in (0, 1) for y in (0, 1) for z in (0, 1)]
+    kw = dict(size=(3.0, 3.0, 3.0), position=(10.0, 10.0))
+    box = voxelize(ObjectSpec(shape="box", **kw), SHAPE, CELL)
+    hull = voxelize(ObjectSpec(shape="hull", points=corners, **kw), SHAPE, CELL)
+    assert np.array_equal(np.sort(hull), np.sort(box)) and len(box) == 6 * 6 * 6
+    tetra = voxelize(ObjectSpec(shape="hull", points=[(0, 0, 0), (1, 0, 0), (0, 1, 0),
+                                                      (0, 0, 1)], **kw), SHAPE, CELL)
+    assert set(tetra) <= set(box)  # inside the same 3 m cube
+    assert 216 / 6 * 0.5 < len(tetra) < 216 / 6 * 2  # volume 1/6 of the cube's, voxelized
+
+
 @pytest.mark.parametrize("suffix", [".stl", ".obj", ".ply", ".glb"])
 def test_mesh_files_voxelize_like_the_primitive(tmp_path, suffix):
     path = tmp_path / f"cube{suffix}"

@@ -66,6 +66,43 @@ def test_evaluate_and_render_a_checkpoint(ppo_run, tmp_path, capsys, monkeypatch
     assert main(["evaluate", str(tmp_path)]) == 2  # no checkpoint there: one-line error
 
 
+def test_deterministic_evaluation_plays_the_mean_action(ppo_run, tmp_path):
+    """``evaluate --deterministic``: every robot's action is its Gaussian's mean (clipped),
+    whatever torch's seed; sampled actions (the default) are not."""
+    import numpy as np
+    import torch
+    from ray.rllib.core.columns import Columns
+
+    from rl_scan.algorithms.rollout import (
+        PolicyTeam,
+        load_actors,
+        resolve_checkpoint,
+        run_env_config,
+    )
+    from rl_scan.envs.core import ScanCore
+
+    ckpt = resolve_checkpoint(ppo_run)
+    modules = load_actors(ckpt)
+    obs = ScanCore(run_env_config(ckpt)).reset(seed=0)
+    mean = {}
+    for aid, o in obs.items():
+        module = modules[aid.rsplit("_", 1)[0]]
+        logits = module.forward_inference({Columns.OBS: torch.as_tensor(o[None])})
+        inputs = logits[Columns.ACTION_DIST_INPUTS][0].detach().numpy()
+        mean[aid] = np.clip(inputs[:len(inputs) // 2], -1, 1)
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        acts = PolicyTeam(modules, explore=False).act(obs)
+        for aid in obs:
+            np.testing.assert_allclose(acts[aid], mean[aid], rtol=1e-6, atol=1e-7)
+    sampled = PolicyTeam(modules).act(obs)
+    assert not all(np.allclose(sampled[a], mean[a]) for a in obs)
+    out_json = tmp_path / "det.json"
+    assert main(["evaluate", str(ppo_run), "--deterministic", "--episodes", "1",
+                 "--no-reference", "--json", str(out_json)]) == 0
+    assert json.loads(out_json.read_text())["deterministic"] is True
+
+
 def test_best_checkpoints_are_kept_and_re_evaluated_for_the_report(ray_session, tmp_path,
                                                                    capsys):
     """6 iterations, a checkpoint each: Tune keeps the 3 best by evaluation coverage plus the

@@ -259,7 +259,9 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
                       *cells, "-" if np.isnan(ref) else f"{ref:.3f}")
     Console().print(table)
     if args.json:
-        _write_json(args.json, {"checkpoint": label, "episodes": runs, "summary": summary})
+        _write_json(args.json, {"checkpoint": label, "seed": args.seed,
+                                "deterministic": args.deterministic, "episodes": runs,
+                                "summary": summary})
     if args.best:
         _record_best_eval(core, args, runs)
     return 0
