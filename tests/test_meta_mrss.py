@@ -80,6 +80,20 @@ class FakeJob(Job):
         self.log.append(("end", self.name))
 
 
+def test_a_finished_run_is_skipped_when_the_experiment_is_re_run(tmp_path):
+    """A run folder with DONE is returned as it is: no training is started (this job's
+    algorithm does not exist, so starting one would raise)."""
+    done = tmp_path / "poca_test0_s0"
+    done.mkdir()
+    (done / R.DONE).write_text("finished\n")
+    (done / R.EVAL_FILE).write_text("[]")
+    job = Job("poca test:0 s0", tmp_path, done.name, {"algo": "no-such-algo", "env_config": {}})
+    assert job.run() == done and (done / R.EVAL_FILE).read_text() == "[]"
+    with pytest.raises(ConfigError, match="no-such-algo"):  # the same job, not finished
+        Job("poca test:1 s0", tmp_path, "poca_test1_s0",
+            {"algo": "no-such-algo", "env_config": {}}).run()
+
+
 def test_jobs_run_in_parallel_and_wait_for_their_prerequisite():
     import threading
 
