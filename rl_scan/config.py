@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import os
+import tempfile
 import types
 import typing
 from pathlib import Path
@@ -146,6 +148,30 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
         else:
             out[k] = v
     return out
+
+
+def check_writable(field: str, path: str | Path, *, folder: bool) -> None:
+    """Refuse an output path that cannot be written, before any work starts.
+
+    The nearest existing folder on the way to ``path`` (its parent for a file) must take
+    a new sub-folder: a probe folder is made there and removed at once, which catches
+    read-only and virtual file systems (/proc, /sys) where permission bits alone do not.
+    """
+    target = Path(path).expanduser().absolute()
+    where = target if folder else target.parent
+    if folder and target.exists() and not target.is_dir():
+        fail(field, str(path), "a folder (a file of that name exists)")
+    base = where
+    while not base.exists():
+        base = base.parent
+    if not base.is_dir():
+        fail(field, str(path), f"a path under a folder ({str(base)!r} is a file)")
+    try:
+        probe = tempfile.mkdtemp(prefix=".rl-scan-probe-", dir=base)
+    except OSError as e:
+        fail(field, str(path), f"a writable location (no folder can be made in "
+                               f"{str(base)!r}: {e.strerror})")
+    os.rmdir(probe)
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:

@@ -106,6 +106,30 @@ def test_an_env_config_yaml_sets_fields_and_flags_override_it(tmp_path, capsys):
     assert code == 2 and "max_stepz" in err
 
 
+@pytest.mark.parametrize("argv, field", [
+    (["render", "--scenario", "ablation", "--policy", "greedy", "--out", "/proc/x/a.gif"],
+     "out"),
+    (["replay", "--out", "/proc/x/r.html"], "out"),
+    (["report", "/tmp", "--out", "/proc/report"], "out"),
+    (["train", "--results", "/proc/results"], "results"),
+    (["scenario", "export", "ablation", "/proc/scene.obj"], "out"),
+    (["bench", "env", "--json", "/proc/b/x.json"], "json"),
+])
+def test_an_output_path_that_cannot_be_written_is_one_line_before_any_work(
+        capsys, argv, field):
+    code, out, err = run(capsys, *argv)
+    assert code == 2 and out == ""
+    assert f"error: {field}='/proc/" in err and "no folder can be made in '/proc'" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_an_output_under_a_file_is_refused(capsys, tmp_path):
+    (tmp_path / "file").write_text("")
+    code, _, err = run(capsys, "render", "--out", str(tmp_path / "file" / "a.gif"))
+    assert code == 2 and "is a file" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["file"]  # no probe left behind
+
+
 @pytest.mark.parametrize("argv", [[], ["scenario"], ["bench", "env"], ["render"]])
 def test_help(capsys, argv):
     with pytest.raises(SystemExit) as e:

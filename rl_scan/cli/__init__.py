@@ -29,6 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     ray_was_up = _ray_is_up()
     try:
+        check_outputs(args)
         return args.func(args)
     except (ConfigError, ValueError) as e:
         print(f"rl-scan {args.command}: error: {e}", file=sys.stderr)
@@ -46,6 +47,23 @@ def main(argv: list[str] | None = None) -> int:
             import ray
 
             ray.shutdown()
+
+
+def check_outputs(args) -> None:
+    """Every output path of the command can be written (checked before any work)."""
+    from pathlib import Path
+
+    from rl_scan.config import check_writable
+
+    if getattr(args, "results", None):
+        check_writable("results", args.results, folder=True)
+    if args.command == "report":
+        out = args.out or Path(args.results_dir) / "report"
+        check_writable("out", out, folder=True)
+    elif getattr(args, "out", None):
+        check_writable("out", args.out, folder=False)
+    if getattr(args, "json", None):
+        check_writable("json", args.json, folder=False)
 
 
 def _ray_is_up() -> bool:
