@@ -241,6 +241,29 @@ def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(ray_
         assert all(torch.isfinite(p).all() for p in module.parameters())
 
 
+def test_the_console_shows_only_rl_scans_own_lines_unless_verbose(tmp_path):
+    """What a user sees of `rl-scan train`: our header, progress and done lines; Ray's own
+    log lines (timestamped INFO/WARNING records, C++ logs) only with --verbose."""
+    import re
+
+    ray_line = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+\s+(INFO|WARNING)|\[\d{4}-)")
+    base = [sys.executable, "-m", "rl_scan.cli", "train", "--preset", "smoke",
+            "--total-env-steps", "400", "--results", str(tmp_path)]
+    env = {**os.environ, "COLUMNS": "200"}
+    env.pop("RAY_LOGGER_LEVEL", None)
+    quiet = subprocess.run(base + ["--name", "quiet"], capture_output=True, text=True,
+                           timeout=300, env=env)
+    assert quiet.returncode == 0, quiet.stderr[-2000:]
+    lines = (quiet.stdout + quiet.stderr).splitlines()
+    assert [line for line in lines if ray_line.match(line)] == []
+    assert lines[0].startswith("poca on ablation") and lines[-1].startswith("done: ")
+    assert any(re.match(r"quiet +iter +1 +env steps +400", line) for line in lines)
+    loud = subprocess.run(base + ["--name", "loud", "--verbose"], capture_output=True,
+                          text=True, timeout=300, env=env)
+    assert loud.returncode == 0, loud.stderr[-2000:]
+    assert any(ray_line.match(line) for line in (loud.stdout + loud.stderr).splitlines())
+
+
 def test_default_run_names_are_folder_safe():
     from rl_scan.tuning.launch import scenario_label
 

@@ -28,6 +28,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     ray_was_up = _ray_is_up()
+    if not args.verbose and args.command not in RAY_FREE:
+        quiet_ray()
     try:
         check_outputs(args)
         return args.func(args)
@@ -47,6 +49,25 @@ def main(argv: list[str] | None = None) -> int:
             import ray
 
             ray.shutdown()
+
+
+RAY_FREE = ("scenario", "report")  # commands that never import Ray
+
+
+def quiet_ray() -> None:
+    """Keep Ray's own lines out of the console (``--verbose`` keeps them): its INFO and
+    WARNING notices (token authentication, "Started a local Ray instance", "You are running
+    POCA on the new API stack", Tune's result-file notes, RLlib deprecations). Errors stay.
+    Ray sets its loggers' levels when imported and again in ``ray.init`` (from
+    RAY_LOGGER_LEVEL), so both are set here, before either happens."""
+    import logging
+    import os
+
+    os.environ.setdefault("RAY_LOGGER_LEVEL", "error")
+    import ray  # noqa: F401 - configures the "ray" loggers, which are then turned down
+
+    for name in ("ray", "ray.rllib", "ray.tune"):
+        logging.getLogger(name).setLevel(logging.ERROR)
 
 
 def check_outputs(args) -> None:

@@ -283,4 +283,17 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--seed", type=int, default=0, help="reset seed")
     add_env_args(render)
     render.set_defaults(func=commands.render_cmd)
+    for leaf in _leaves(parser):
+        leaf.add_argument("--verbose", action="store_true",
+                          help="also show Ray's own log lines (hidden by default)")
     return parser
+
+
+def _leaves(parser: argparse.ArgumentParser):
+    """The parsers of every runnable command (sub-commands of sub-commands included)."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield parser
+    for action in subs:
+        for child in dict.fromkeys(action.choices.values()):
+            yield from _leaves(child)

@@ -63,12 +63,32 @@ def check_resources(preset: TrainPreset, available: float) -> None:
 RUNTIME_ENV = {"env_vars": {"PYTHONHASHSEED": "0"}}
 
 
+def check_address(address: str, timeout_s: float = 5.0) -> None:
+    """Fail fast when nothing answers at a cluster address: ``ray.init`` would retry for
+    minutes, printing GCS warnings. ``auto`` (the cluster this node belongs to) is Ray's."""
+    import socket
+
+    if address in ("auto", "local"):
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        fail("address", address, "HOST:PORT of a Ray cluster's head (or ray://HOST:PORT, "
+             "or auto)")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        fail("address", address, f"the address of a running Ray cluster: nothing answers at "
+             f"{host}:{port} ({e.strerror or e}); start one with `ray start --head --port "
+             f"{port}` (docs/cluster.md)")
+
+
 def init_ray(address: str | None) -> float:
     """Join the Ray cluster at ``address`` or start a local Ray (once); its CPU count."""
     import ray
 
     if not ray.is_initialized():
         if address:
+            check_address(address)
             ray.init(address=address, log_to_driver=False, runtime_env=RUNTIME_ENV)
         else:
             ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False,
