@@ -123,6 +123,24 @@ def test_an_output_path_that_cannot_be_written_is_one_line_before_any_work(
     assert len(err.strip().splitlines()) == 1
 
 
+def test_an_address_where_no_cluster_runs_is_one_line_within_seconds(capsys, tmp_path):
+    import socket
+    import time
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    start = time.monotonic()
+    code, _, err = run(capsys, "train", "--preset", "smoke", "--address", f"127.0.0.1:{port}",
+                       "--results", str(tmp_path))
+    assert code == 2 and time.monotonic() - start < 30
+    assert f"address='127.0.0.1:{port}' is invalid" in err and "nothing answers" in err
+    assert not any(tmp_path.iterdir())
+    code, _, err = run(capsys, "train", "--preset", "smoke", "--address", "headnode",
+                       "--results", str(tmp_path))
+    assert code == 2 and "HOST:PORT" in err
+
+
 def test_an_output_under_a_file_is_refused(capsys, tmp_path):
     (tmp_path / "file").write_text("")
     code, _, err = run(capsys, "render", "--out", str(tmp_path / "file" / "a.gif"))
