@@ -40,6 +40,8 @@ PROTOCOL_FILE = "protocol.yaml"  # a meta-MRSS experiment's plan (methods, tests
 PRETRAIN_DIR, ADAPT_DIR = "pretrain", "adapt"
 SUMMARY_FILE, TABLE_FILE = "summary.json", "table.md"
 DONE = "DONE"  # a finished run of an experiment (skipped when the experiment is re-run)
+NODES_FILE = "nodes.json"  # in a run folder: the Ray nodes its trial ran on, per iteration span
+NODES = "nodes"  # result key: this process's node and its remote env runners' nodes
 NONFINITE_FILE = "nonfinite_loss.txt"  # in a trial folder: why it stopped (never retried)
 LOG_DIR = "logs"  # stderr of every experiment run started in a child process
 
@@ -96,6 +98,19 @@ def append_eval(folder: Path, entry: dict[str, Any]) -> None:
     entries = read_json(path) or []
     entries = [e for e in entries if e[ITERATION] < entry[ITERATION]]
     write_json(path, [*entries, entry])
+
+
+def record_nodes(folder: Path, iteration: int, nodes: dict[str, Any] | None) -> None:
+    """Add to a run folder's NODES_FILE when the run's placement changes (its start, and
+    a restore onto other nodes): entries ``{"from_iteration": k, "trainable": ...,
+    "env_runners": [...]}``."""
+    if not nodes:
+        return
+    path = Path(folder) / NODES_FILE
+    entries = read_json(path) or []
+    last = entries[-1] if entries else {}
+    if {k: last.get(k) for k in nodes} != nodes:
+        write_json(path, [*entries, {"from_iteration": iteration, **nodes}])
 
 
 def write_json(path: Path, data: Any) -> None:

@@ -47,6 +47,11 @@ def test_ppo_smoke_run_writes_a_complete_run_folder(ppo_run):
     assert [int(float(r[R.ENV_STEPS])) for r in rows] == [400, 800]
     assert sorted(p.name for p in (run_dir / R.TUNE_DIR / R.TRAIN_TRIAL).glob("checkpoint_*"))
     assert list((run_dir / R.TUNE_DIR / R.TRAIN_TRIAL).glob("events.out.tfevents*"))
+    import ray  # the node it ran on: this session's only node; no remote env runners
+
+    nodes = json.loads((run_dir / R.NODES_FILE).read_text())
+    assert nodes == [{"from_iteration": 1, "env_runners": [], "trainable": {
+        "node_id": ray.nodes()[0]["NodeID"], "ip": ray.nodes()[0]["NodeManagerAddress"]}}]
     with pytest.raises(ConfigError, match="exists: pass --resume"):
         train("ppo", {"scenario": "test:2"}, "smoke", results_dir=run_dir.parent,
               name=run_dir.name)

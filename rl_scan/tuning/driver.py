@@ -140,6 +140,7 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
     if checkpoint is not None:
         with checkpoint.as_directory() as folder:
             algorithm.restore_from_path(folder)
+    nodes = placement(algorithm)
     try:
         while True:
             result = algorithm.train()
@@ -148,6 +149,7 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
             result[R.EVALUATED] = bool(preset.evaluation_interval and R.evaluation_of(result)
                                        and it % preset.evaluation_interval == 0)
             result[R.LEARNER_THREADS] = torch.get_num_threads()
+            result[R.NODES] = nodes
             done = result[R.ENV_STEPS] >= preset.total_env_steps
             if done or it % preset.checkpoint_frequency == 0:
                 with tempfile.TemporaryDirectory() as tmp:
@@ -162,6 +164,21 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
         raise
     finally:
         algorithm.stop()
+
+
+def placement(algorithm) -> dict[str, Any]:
+    """The Ray nodes of this run: its training process's and each remote env runner's
+    (node id and IP; two nodes on one machine share the IP)."""
+    import ray
+
+    def here(*_):
+        return {"node_id": ray.get_runtime_context().get_node_id(),
+                "ip": ray.util.get_node_ip_address()}
+
+    group = algorithm.env_runner_group
+    remote = group.foreach_env_runner(here, local_env_runner=False) if (
+        group is not None and group.num_remote_env_runners()) else []
+    return {"trainable": here(), "env_runners": list(remote)}
 
 
 def checkpoint_config(preset: TrainPreset):
@@ -234,6 +251,7 @@ class RunProgress(Callback):
         if result.get(R.EVALUATED):
             line += f"  eval coverage {result.get(R.EVAL_SCORE, math.nan):5.3f}"
             R.append_eval(folder, R.eval_entry(result))
+        R.record_nodes(folder, result.get(R.ITERATION, 0), result.get(R.NODES))
         print(line, flush=True)
 
     def on_trial_complete(self, iteration, trials, trial, **info) -> None:
