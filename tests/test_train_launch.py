@@ -154,6 +154,14 @@ def test_resources_are_checked_before_launch():
                         available=2)
     with pytest.raises(ConfigError, match="preset.learner_cpus=0 is invalid"):
         get_preset("smoke", {"learner_cpus": 0})
+    # custom resources: the first bundle must fit on one node
+    slot = get_preset("smoke", {"custom_resources": {"trial_slot": 1.0}})
+    check_resources(slot, available=2, custom={"trial_slot": 1.0})
+    with pytest.raises(ConfigError, match=r"custom_resources=\{'trial_slot': 1.0\} is invalid"
+                                          r": allowed resources one node .* at most 0.5"):
+        check_resources(slot, available=2, custom={"trial_slot": 0.5})
+    with pytest.raises(ConfigError, match="not CPU/GPU/memory"):
+        get_preset("smoke", {"custom_resources": {"CPU": 1.0}})
 
 
 @pytest.mark.parametrize("overrides, threads", [({"num_env_runners": 1}, 1),

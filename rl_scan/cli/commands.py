@@ -286,7 +286,8 @@ def _record_best_eval(core, args: argparse.Namespace, runs: list[dict]) -> None:
 PRESET_FLAGS = (("num_env_runners", "num_env_runners"),
                 ("num_envs_per_env_runner", "envs_per_runner"), ("learner_cpus", "learner_cpus"),
                 ("overlap_sampling", "overlap_sampling"),
-                ("total_env_steps", "total_env_steps"), ("sampler", "sampler"))
+                ("total_env_steps", "total_env_steps"), ("sampler", "sampler"),
+                ("custom_resources", "custom_resources"))
 """(preset field, command-line dest) of the flags that override a training preset."""
 
 

@@ -45,6 +45,28 @@ def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
                         "on this one (needs --num-env-runners >= 1; one iteration of policy "
                         "lag)")
     _add_sampler_arg(p)
+    _add_resources_arg(p)
+
+
+def _add_resources_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--trial-resources", dest="custom_resources", type=parse_resources,
+                   default=None, metavar="NAME=AMOUNT[,...]",
+                   help="custom Ray resources each run asks for, to pin runs to the nodes "
+                        "that offer them (e.g. trial_slot=1; docs/cluster.md)")
+
+
+def parse_resources(text: str) -> dict[str, float]:
+    """'a=1,b=0.5' -> {'a': 1.0, 'b': 0.5} (argparse reports a bad item as one line)."""
+    out = {}
+    for item in filter(None, text.split(",")):
+        name, sep, amount = item.partition("=")
+        try:
+            out[name.strip()] = float(amount)
+        except ValueError:
+            sep = ""
+        if not sep or not name.strip():
+            raise argparse.ArgumentTypeError(f"{item!r} is not NAME=AMOUNT")
+    return out
 
 
 def _add_sampler_arg(p: argparse.ArgumentParser) -> None:
@@ -246,6 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     mm.add_argument("--results", default="results")
     mm.add_argument("--name", default="meta-mrss")
     _add_sampler_arg(mm)
+    _add_resources_arg(mm)
     mm.set_defaults(func=commands.experiment_cmd)
 
     ev = sub.add_parser(

@@ -208,7 +208,7 @@ def trial_resources(preset: TrainPreset):
     """
     from ray.tune.execution.placement_groups import PlacementGroupFactory
 
-    return PlacementGroupFactory([{"CPU": preset.learner_cpus}]
+    return PlacementGroupFactory([{"CPU": preset.learner_cpus, **preset.custom_resources}]
                                  + [{"CPU": 1}] * preset.num_env_runners)
 
 

@@ -46,8 +46,11 @@ def check_output_folder(folder: Path, marker: str, what: str, resume: bool) -> N
         raise ConfigError(f"--resume: no {what} to resume in {str(folder)!r}")
 
 
-def check_resources(preset: TrainPreset, available: float) -> None:
-    """Refuse runs whose trial could never be scheduled (Tune would wait silently)."""
+def check_resources(preset: TrainPreset, available: float,
+                    custom: dict[str, float] | None = None) -> None:
+    """Refuse runs whose trial could never be scheduled (Tune would wait silently):
+    more CPUs than the cluster has, or a custom resource no node offers enough of
+    (``custom``: the most of each that one node has; read from Ray when not given)."""
     need = required_cpus(preset)
     if need > available:
         field, other = (("num_env_runners", "learner_cpus") if preset.num_env_runners
@@ -56,6 +59,30 @@ def check_resources(preset: TrainPreset, available: float) -> None:
         fail(field, getattr(preset, field),
              f"at most {allowed} on this Ray cluster ({available:g} CPUs; a run needs "
              f"learner_cpus + num_env_runners = {need})")
+    if preset.custom_resources and custom is None:
+        custom = largest_per_node()
+    for name, amount in preset.custom_resources.items():
+        have = (custom or {}).get(name, 0.0)
+        if amount > have:
+            fail("custom_resources", {name: amount},
+                 f"resources one node of this Ray cluster has ({name}: at most {have:g} on "
+                 f"a node; start nodes with `ray start --resources '{{\"{name}\": 1}}'`, "
+                 "docs/cluster.md)")
+
+
+def largest_per_node() -> dict[str, float]:
+    """The most of each resource one live node of the connected Ray cluster has ({} if
+    Ray is not running here): a run's first bundle must fit on one node."""
+    import ray
+
+    if not ray.is_initialized():
+        return {}
+    out: dict[str, float] = {}
+    for node in ray.nodes():
+        if node.get("Alive"):
+            for name, amount in node.get("Resources", {}).items():
+                out[name] = max(out.get(name, 0.0), float(amount))
+    return out
 
 
 # Same seed, same run: RLlib iterates over sets of module ids while sampling, and a set's
@@ -83,7 +110,8 @@ def check_address(address: str, timeout_s: float = 5.0) -> None:
 
 
 def init_ray(address: str | None) -> float:
-    """Join the Ray cluster at ``address`` or start a local Ray (once); its CPU count."""
+    """Join the Ray cluster at ``address`` or start a local Ray (once); its CPU count
+    (``cluster_resources()`` has the rest)."""
     import ray
 
     if not ray.is_initialized():

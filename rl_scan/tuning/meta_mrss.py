@@ -38,7 +38,7 @@ from rl_scan.envs.sim.scenarios import N_TEST
 from rl_scan.studies import PAPER_META_SUCCESS
 from rl_scan.tuning.driver import make_run_spec, required_cpus
 from rl_scan.tuning.jobs import Job, run_jobs
-from rl_scan.tuning.launch import check_resources, init_ray, scenario_label
+from rl_scan.tuning.launch import check_resources, init_ray, largest_per_node, scenario_label
 from rl_scan.tuning.presets import PROTOCOLS, Protocol, get_preset
 
 METHODS = ("meta-mrss", "dr", "transfer", "poca")
@@ -150,9 +150,10 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     root = Path(results_dir).resolve() / name
     plan = plan_jobs(root, methods, tests, seeds, protocol, env_config, preset_overrides)
     check_jobs(plan)
-    need = required_cpus(get_preset(protocol.train_preset))
+    run_preset = get_preset(protocol.train_preset, preset_overrides)
+    need = required_cpus(run_preset)
     cpus = _available_cpus(address)
-    check_resources(get_preset(protocol.train_preset), cpus)
+    check_resources(run_preset, cpus, largest_per_node())
     most = max(1, int(cpus) // need)
     if jobs is not None and jobs > most:
         fail("jobs", jobs, f"at most {most} on this Ray cluster ({cpus:g} CPUs, {need} per run)")

@@ -35,6 +35,10 @@ class TrainPreset:
     faster with 2 (docs/performance.md). Never more threads than reserved CPUs: a
     two-thread learner beside a busy core runs several times slower."""
     num_envs_per_env_runner: int = 4
+    custom_resources: dict[str, float] = field(default_factory=dict)
+    """Custom Ray resources each run's training process asks for, e.g. ``{"trial_slot": 1}``
+    on a cluster whose nodes were started with ``--resources '{"trial_slot": 1}'``: pins
+    runs to nodes that have them (docs/cluster.md)."""
     decay_schedules: bool = False
     """ML-Agents' linear decays over ``total_env_steps``: lr to ~0, beta to 1e-5 and (POCA)
     the clip range 0.2 -> 0.1 (RLlib's PPO keeps its clip range fixed)."""
@@ -63,6 +67,11 @@ class TrainPreset:
             fail(prefix + "overlap_sampling", True, "only with num_env_runners >= 1 (remote "
                  f"runners sample while the learner learns; num_env_runners="
                  f"{self.num_env_runners})")
+        for name, amount in self.custom_resources.items():
+            if name in ("CPU", "GPU", "memory") or not isinstance(amount, (int, float)) \
+                    or amount <= 0:
+                fail(prefix + "custom_resources", {name: amount},
+                     "custom resource names (not CPU/GPU/memory) with amounts > 0")
         check_range(prefix + "num_envs_per_env_runner", self.num_envs_per_env_runner, 1, 256)
         if self.sampler not in SAMPLERS:
             fail(prefix + "sampler", self.sampler, f"one of {sorted(SAMPLERS)}")
