@@ -94,6 +94,29 @@ def test_a_finished_run_is_skipped_when_the_experiment_is_re_run(tmp_path):
             {"algo": "no-such-algo", "env_config": {}}).run()
 
 
+def test_a_re_run_waits_for_a_run_still_being_written_by_another_process(tmp_path):
+    """A killed experiment's run may still be stopping when the command is run again: the
+    new process waits for its lock and, finding the run finished, starts nothing."""
+    import subprocess
+    import sys
+    import time
+
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import fcntl, pathlib, sys, time\n"
+        f"root = pathlib.Path({str(tmp_path)!r})\n"
+        "f = open(root / '.poca_test0_s0.lock', 'a+'); fcntl.flock(f, fcntl.LOCK_EX)\n"
+        "print('locked', flush=True); time.sleep(2)\n"
+        "(root / 'poca_test0_s0').mkdir(); (root / 'poca_test0_s0' / 'DONE').write_text('x')\n")],
+        stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    start = time.monotonic()
+    job = Job("poca test:0 s0", tmp_path, "poca_test0_s0",
+              {"algo": "no-such-algo", "env_config": {}})  # training would raise
+    assert job.run() == tmp_path / "poca_test0_s0"
+    assert time.monotonic() - start > 1.0  # it waited for the other process
+    holder.wait()
+
+
 def test_jobs_run_in_parallel_and_wait_for_their_prerequisite():
     import threading
 

@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,14 +27,41 @@ from rl_scan.tuning.launch import train
 
 
 def _run(folder: Path, name: str, **kwargs) -> Path:
-    """Train unless finished; resume if interrupted."""
+    """Train unless finished; resume if interrupted. One process at a time per run: a
+    re-run waits for a run still stopping (e.g. one whose experiment driver was killed)."""
     run_dir = folder / name
     if (run_dir / DONE).is_file():
         return run_dir
-    resume = (run_dir / RUN_FILE).is_file()
-    train(results_dir=folder, name=name, resume=resume, **kwargs)
-    (run_dir / DONE).write_text("finished\n")
+    with _run_lock(folder, name):
+        if (run_dir / DONE).is_file():  # finished while we waited
+            return run_dir
+        resume = (run_dir / RUN_FILE).is_file()
+        train(results_dir=folder, name=name, resume=resume, **kwargs)
+        (run_dir / DONE).write_text("finished\n")
     return run_dir
+
+
+LOCK_WAIT_S = 300.0
+
+
+@contextmanager
+def _run_lock(folder: Path, name: str):
+    """An exclusive lock on ``folder/.NAME.lock`` (released when its process ends)."""
+    import fcntl
+
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / f".{name}.lock", "a+") as f:
+        deadline = time.monotonic() + LOCK_WAIT_S
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"run {name} in {folder} is still being written by "
+                                       f"another process after {LOCK_WAIT_S:.0f} s") from None
+                time.sleep(1.0)
+        yield
 
 
 @dataclass(eq=False)
@@ -57,7 +85,8 @@ class Job:
         log.parent.mkdir(parents=True, exist_ok=True)
         with open(log, "ab") as err:  # stdout (progress lines) goes to the terminal
             proc = subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(spec)],
-                                    stderr=err, start_new_session=True)
+                                    stderr=err, start_new_session=True,
+                                    preexec_fn=_stop_with_parent)
             with _CHILDREN_LOCK:
                 _CHILDREN.add(proc)
             try:
@@ -83,8 +112,20 @@ def _str_or_none(value: Any) -> str | None:
     return None if value is None else str(value)
 
 
+def _stop_with_parent() -> None:
+    """In a child before exec (Linux): SIGINT when the parent dies, so a killed driver's
+    runs stop as after Ctrl+C (Tune keeps their state) instead of running on unowned."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, signal.SIGINT)  # PR_SET_PDEATHSIG
+
+
 def child_main(spec_json: str) -> int:
     """Entry point of a run in a child process (``Job.run`` with an address)."""
+    # Ctrl+C (from the parent, or its death) must interrupt even where the shell that
+    # started us ignores SIGINT (background jobs of a non-interactive shell).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     spec = json.loads(spec_json)
     try:
         _run(Path(spec.pop("folder")), spec.pop("name"), **spec)
