@@ -42,6 +42,7 @@ SUMMARY_FILE, TABLE_FILE = "summary.json", "table.md"
 DONE = "DONE"  # a finished run of an experiment (skipped when the experiment is re-run)
 NODES_FILE = "nodes.json"  # in a run folder: the Ray nodes its trial ran on, per iteration span
 NODES = "nodes"  # result key: this process's node and its remote env runners' nodes
+CHECKPOINT_STEPS = "rl_scan_env_steps.json"  # in a checkpoint: env steps it was taken at
 NONFINITE_FILE = "nonfinite_loss.txt"  # in a trial folder: why it stopped (never retried)
 LOG_DIR = "logs"  # stderr of every experiment run started in a child process
 

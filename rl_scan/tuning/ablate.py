@@ -32,6 +32,32 @@ from rl_scan.tuning.driver import (
 from rl_scan.tuning.launch import check_output_folder, check_resources, init_ray
 
 
+def resumable_optuna_search(**kwargs):
+    """Ray's OptunaSearch, leaving an Optuna trial alone once Optuna has it finished.
+
+    A driver killed after Optuna recorded a trial COMPLETE but before Tune saved its own
+    state makes the resumed Tune run that trial again (to its end, from its last
+    checkpoint); OptunaSearch would then raise UpdateFinishedTrialError and stop the study.
+    """
+    from ray.tune.search.optuna import OptunaSearch
+
+    class ResumableOptunaSearch(OptunaSearch):
+        def _finished_in_optuna(self, trial_id: str) -> bool:
+            ot_trial = self._ot_trials.get(trial_id)
+            return ot_trial is not None and ot_trial.storage.get_trial(
+                ot_trial._trial_id).state.is_finished()
+
+        def on_trial_result(self, trial_id, result):
+            if not self._finished_in_optuna(trial_id):
+                super().on_trial_result(trial_id, result)
+
+        def on_trial_complete(self, trial_id, result=None, error=False):
+            if not self._finished_in_optuna(trial_id):
+                super().on_trial_complete(trial_id, result, error)
+
+    return ResumableOptunaSearch(**kwargs)
+
+
 def search_space(study: Study, seeds: int):
     """Optuna distributions and sampler of a study, and its trial count for a grid."""
     import optuna
@@ -90,8 +116,6 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
 
     import optuna
     from ray import tune
-    from ray.tune.search.optuna import OptunaSearch
-
     num_samples = grid_size or trials
     if not resume:
         folder.mkdir(parents=True)
@@ -113,7 +137,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
                                    resume_errored=True, resume_unfinished=True)
     else:
         storage = optuna.storages.RDBStorage(f"sqlite:///{folder / R.OPTUNA_DB}")
-        searcher = OptunaSearch(space=space, metric=R.EVAL_SCORE, mode="max",
+        searcher = resumable_optuna_search(space=space, metric=R.EVAL_SCORE, mode="max",
                                 sampler=sampler, study_name=name, storage=storage)
         progress = RunProgress(preset.total_env_steps, study_dir=folder, spec=base,
                                study=study.name, trials=num_samples)

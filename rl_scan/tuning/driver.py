@@ -140,6 +140,10 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
     if checkpoint is not None:
         with checkpoint.as_directory() as folder:
             algorithm.restore_from_path(folder)
+            steps = (R.read_json(Path(folder) / R.CHECKPOINT_STEPS) or {}).get("env_steps", 0)
+        if steps >= preset.total_env_steps:  # restored at its end (a resumed study may do
+            algorithm.stop()                 # this): nothing left to train
+            return
     nodes = placement(algorithm)
     try:
         while True:
@@ -154,6 +158,8 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
             if done or it % preset.checkpoint_frequency == 0:
                 with tempfile.TemporaryDirectory() as tmp:
                     algorithm.save_to_path(tmp)
+                    R.write_json(Path(tmp) / R.CHECKPOINT_STEPS,
+                                 {"env_steps": int(result[R.ENV_STEPS]), R.ITERATION: it})
                     tune.report(result, checkpoint=tune.Checkpoint.from_directory(tmp))
             else:
                 tune.report(result)

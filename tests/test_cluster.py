@@ -1,0 +1,220 @@
+"""A real 2-node Ray cluster on this machine (``ray start`` twice, token authentication as
+Ray 2.60 documents it: ``RAY_AUTH_MODE=token`` and a shared ``RAY_AUTH_TOKEN_PATH``).
+
+Each node offers one ``trial_slot`` and runs ask for one (``--trial-resources``), so the
+first trials land on both nodes. Mid-study the worker node's raylet is killed with SIGKILL
+(its trial fails and FailureConfig restores it on the head), then the driver is killed
+with SIGKILL, and the same command is run again: every planned trial ends DONE once.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from rl_scan import results as R
+
+pytestmark = pytest.mark.cluster
+RAY = str(Path(sys.executable).parent / "ray")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _processes_under(root: Path) -> dict[int, list[str]]:
+    """pid -> argv of every process whose command line names ``root``."""
+    out = {}
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        args = [a.decode(errors="replace") for a in argv if a]
+        if any(str(root) in a for a in args):
+            out[int(pid)] = args
+    return out
+
+
+class TwoNodes:
+    """Head + worker node started with ``ray start``; ``kill_worker`` SIGKILLs the worker's
+    raylet. Only processes under this cluster's temp dir are touched (``ray stop`` would
+    stop every Ray on the machine)."""
+
+    def __init__(self) -> None:
+        # short: Ray's Unix socket paths (under the temp dir) must stay under 108 bytes
+        self.root = Path(tempfile.mkdtemp(prefix="rlc", dir="/tmp"))
+        token = self.root / "auth_token"
+        token.write_text(secrets.token_hex(32))
+        self.env = {**os.environ, "RAY_AUTH_MODE": "token",
+                    "RAY_AUTH_TOKEN_PATH": str(token)}
+        self.env.pop("RAY_ADDRESS", None)
+        port = _free_port()
+        self.address = f"127.0.0.1:{port}"
+        slot = json.dumps({"trial_slot": 1})
+        self._ray("start", "--head", "--port", str(port), "--num-cpus", "2",
+                  "--resources", slot, "--temp-dir", str(self.root / "ray"),
+                  "--include-dashboard", "false", "--dashboard-port", str(_free_port()),
+                  "--disable-usage-stats")
+        self.head_id = self._raylets()[0][1]
+        self._ray("start", "--address", self.address, "--num-cpus", "2", "--resources", slot,
+                  "--disable-usage-stats")
+        deadline = time.time() + 60
+        while time.time() < deadline and len(self._raylets()) < 2:
+            time.sleep(0.5)
+        (self.worker_pid, self.worker_id), = [r for r in self._raylets()
+                                               if r[1] != self.head_id]
+
+    def _ray(self, *args: str) -> None:
+        out = subprocess.run([RAY, *args], env=self.env, capture_output=True, text=True,
+                             timeout=120)
+        assert out.returncode == 0, out.stderr[-2000:]
+
+    def _raylets(self) -> list[tuple[int, str]]:
+        """(pid, node id) of this cluster's raylets, oldest first."""
+        found = []
+        for pid, args in sorted(_processes_under(self.root).items()):
+            if args[0].endswith("/raylet"):
+                found += [(pid, a.split("=", 1)[1]) for a in args if a.startswith("--node_id=")]
+        return found
+
+    def kill_worker(self) -> None:
+        os.kill(self.worker_pid, signal.SIGKILL)
+
+    def teardown(self) -> None:
+        for pid in _processes_under(self.root):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+@pytest.fixture
+def cluster():
+    nodes = TwoNodes()
+    try:
+        yield nodes
+    finally:
+        nodes.teardown()
+
+
+def _rows(progress: Path) -> list[dict]:
+    if not progress.is_file():
+        return []
+    with open(progress) as f:
+        return list(csv.DictReader(f))
+
+
+def _trial_nodes(run: Path) -> list[str]:
+    """The node ids a study trial's training process ran on, in order (nodes.json)."""
+    entries = R.read_json(run / R.NODES_FILE) or []
+    return [e["trainable"]["node_id"] for e in entries]
+
+
+def _wait(condition, timeout: float, what: str) -> None:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if condition():
+            return
+        time.sleep(0.5)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def _complete(db: Path) -> list:
+    import optuna
+
+    if not db.is_file():
+        return []
+    try:
+        study = optuna.load_study(study_name="study", storage=f"sqlite:///{db}")
+    except KeyError:  # not created yet
+        return []
+    return [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
+
+
+def test_a_study_survives_losing_a_node_and_its_driver(cluster, tmp_path):
+    started = time.monotonic()
+    steps = 3200  # 8 iterations of the smoke preset per trial
+    cmd = [sys.executable, "-m", "rl_scan.cli", "ablate", "algo", "--preset", "smoke",
+           "--seeds", "2", "--total-env-steps", str(steps), "--trial-resources",
+           "trial_slot=1", "--address", cluster.address, "--results", str(tmp_path),
+           "--name", "study"]
+    study = tmp_path / "study"
+    log = open(tmp_path / "driver.log", "w")
+    driver = subprocess.Popen(cmd, env=cluster.env, stdout=log, stderr=subprocess.STDOUT,
+                              start_new_session=True)
+
+    def runs() -> list[Path]:
+        trials = study / R.TRIALS_DIR
+        return sorted(trials.iterdir()) if trials.is_dir() else []
+
+    def on_worker_with_a_checkpoint() -> Path | None:
+        for run in runs():
+            if cluster.worker_id in _trial_nodes(run) and len(
+                    _rows(R.tune_trial_dir(run) / R.PROGRESS_FILE)) >= 2:
+                return run
+        return None
+
+    _wait(lambda: on_worker_with_a_checkpoint() is not None, 240,
+          "a trial on the worker node past its first checkpoint")
+    first = {run.name: _trial_nodes(run)[0] for run in runs()}
+    assert set(first.values()) == {cluster.head_id, cluster.worker_id}  # both nodes used
+    lost = on_worker_with_a_checkpoint()
+    cluster.kill_worker()
+    killed_at = time.monotonic() - started
+
+    db = study / R.OPTUNA_DB
+    _wait(lambda: len(_complete(db)) >= 1, 300, "a finished trial after the node loss")
+    os.killpg(driver.pid, signal.SIGKILL)
+    driver.wait()
+    finished_before = {t.number: t.params for t in _complete(db)}
+    assert 1 <= len(finished_before) < 4, "the driver kill should land mid-study"
+    before = {run.name: _rows(R.tune_trial_dir(run) / R.PROGRESS_FILE) for run in runs()}
+
+    again = subprocess.run(cmd + ["--resume"], env=cluster.env, capture_output=True,
+                           text=True, timeout=600)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    done = _complete(db)
+    import optuna
+
+    all_trials = optuna.load_study(study_name="study", storage=f"sqlite:///{db}").trials
+    assert len(all_trials) == len(done) == 4  # each planned trial once, all complete
+    assert sorted((t.params["condition"], t.params["seed"]) for t in done) == [
+        ("poca", 0), ("poca", 1), ("ppo", 0), ("ppo", 1)]
+    assert len(runs()) == 4
+    for run in runs():
+        rows = _rows(R.tune_trial_dir(run) / R.PROGRESS_FILE)
+        iters = [int(r[R.ITERATION]) for r in rows]
+        assert iters == list(range(1, 9)), (run.name, iters)  # none repeated, none missing
+        assert int(float(rows[-1][R.ENV_STEPS])) == steps
+        evals = [e[R.ITERATION] for e in R.read_json(run / R.EVAL_FILE)]
+        assert evals == list(range(1, 9))
+    # the trial on the lost node was restored from its checkpoint onto the head
+    assert _trial_nodes(lost)[0] == cluster.worker_id
+    assert _trial_nodes(lost)[-1] == cluster.head_id
+    # trials finished before the driver was killed were not run again
+    for run in runs():
+        params = R.read_yaml(run / R.RUN_FILE)["params"]
+        if params in finished_before.values():
+            assert _rows(R.tune_trial_dir(run) / R.PROGRESS_FILE) == before[run.name]
+    per_node = {node: sum(first_node == node for first_node in first.values())
+                for node in (cluster.head_id, cluster.worker_id)}
+    print(f"\ncluster study: first placement head {per_node[cluster.head_id]} / worker "
+          f"{per_node[cluster.worker_id]} trials; worker raylet killed at {killed_at:.0f} s "
+          f"({lost.name} restored on the head: nodes {len(_trial_nodes(lost))} entries); "
+          f"driver killed with {len(finished_before)}/4 trials complete; after --resume "
+          f"{len(done)}/4 complete, {len(all_trials)} in Optuna; wall "
+          f"{time.monotonic() - started:.0f} s")
