@@ -218,3 +218,61 @@ def test_a_study_survives_losing_a_node_and_its_driver(cluster, tmp_path):
           f"driver killed with {len(finished_before)}/4 trials complete; after --resume "
           f"{len(done)}/4 complete, {len(all_trials)} in Optuna; wall "
           f"{time.monotonic() - started:.0f} s")
+
+
+def test_an_experiment_survives_losing_a_node_and_its_driver(cluster, tmp_path):
+    """`experiment meta-mrss --jobs 2`: runs are child processes on the cluster. The node
+    loss is retried by Tune inside the run; the driver's death stops its children (as
+    Ctrl+C would) and the same command completes the rest without repeating a run."""
+    started = time.monotonic()
+    steps = 2400  # 6 iterations of the smoke preset per run
+    cmd = [sys.executable, "-m", "rl_scan.cli", "experiment", "meta-mrss", "--preset",
+           "smoke", "--methods", "dr,poca", "--tests", "0", "--seeds", "2", "--jobs", "2",
+           "--pretrain-steps", str(steps), "--adapt-steps", str(steps), "--trial-resources",
+           "trial_slot=1", "--address", cluster.address, "--results", str(tmp_path),
+           "--name", "mm"]
+    root = tmp_path / "mm"
+    log = open(tmp_path / "driver.log", "w")
+    driver = subprocess.Popen(cmd, env=cluster.env, stdout=log, stderr=subprocess.STDOUT,
+                              start_new_session=True)
+
+    def runs() -> list[Path]:
+        return sorted(p.parent for p in root.glob(f"*/*/{R.RUN_FILE}"))
+
+    def progress(run: Path) -> list[dict]:
+        return _rows(run / R.TUNE_DIR / R.TRAIN_TRIAL / R.PROGRESS_FILE)
+
+    def on_worker_with_a_checkpoint() -> Path | None:
+        return next((r for r in runs() if cluster.worker_id in _trial_nodes(r)
+                     and len(progress(r)) >= 2), None)
+
+    _wait(lambda: on_worker_with_a_checkpoint() is not None, 240,
+          "a run on the worker node past its first checkpoint")
+    lost = on_worker_with_a_checkpoint()
+    cluster.kill_worker()
+    killed_at = time.monotonic() - started
+    _wait(lambda: any((r / R.DONE).is_file() for r in runs()), 300, "a finished run")
+    os.killpg(driver.pid, signal.SIGKILL)
+    driver.wait()
+    # its children stop on their own (parent-death signal), Tune saving their state
+    _wait(lambda: not any("child_main" in " ".join(a) for a in
+                          _processes_under(tmp_path).values()), 120, "the runs to stop")
+    finished_before = {r.name: progress(r) for r in runs() if (r / R.DONE).is_file()}
+    assert 1 <= len(finished_before) < 6, "the driver kill should land mid-experiment"
+
+    again = subprocess.run(cmd, env=cluster.env, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    names = sorted(r.name for r in runs())
+    assert names == ["dr_s0", "dr_s1", "dr_test0_s0", "dr_test0_s1", "poca_test0_s0",
+                     "poca_test0_s1"]
+    for run in runs():
+        assert (run / R.DONE).is_file()
+        iters = [int(r[R.ITERATION]) for r in progress(run)]
+        assert iters == list(range(1, 7)), (run.name, iters)  # none repeated, none missing
+        if run.name in finished_before:  # not run again
+            assert progress(run) == finished_before[run.name]
+    assert _trial_nodes(lost)[0] == cluster.worker_id
+    assert _trial_nodes(lost)[-1] == cluster.head_id
+    print(f"\ncluster experiment: worker raylet killed at {killed_at:.0f} s ({lost.name} "
+          f"restored on the head); driver killed with {len(finished_before)}/6 runs done; "
+          f"after the re-run 6/6 done, none repeated; wall {time.monotonic() - started:.0f} s")
