@@ -4,8 +4,9 @@ Every rl-scan command writes under a results folder, and ``rl-scan report`` read
 
   run folder          RUN_FILE (what ran: algorithm, preset, env config, seed, commit),
                       EVAL_FILE (one entry per training-time evaluation), BEST_EVAL_FILE
-                      (``evaluate --best``), DONE (a finished run of an experiment), and
-                      TUNE_DIR/trial/ (Tune: progress.csv, result.json, checkpoints).
+                      (``evaluate --best``), NODES_FILE (the Ray nodes it ran on), DONE (a
+                      finished run of an experiment), and TUNE_DIR/trial/ (Tune:
+                      progress.csv, result.json, checkpoints; NONFINITE_FILE after a NaN).
   study folder        STUDY_FILE, OPTUNA_DB, TRIALS_DIR/<trial id>/ (one run folder per
                       trial) and TUNE_DIR/<trial id>/ (Tune's) (``rl-scan ablate``).
   experiment folder   PROTOCOL_FILE, PRETRAIN_DIR/<run>/, ADAPT_DIR/<run>/, LOG_DIR/,

@@ -13,6 +13,7 @@ import csv
 import json
 import os
 import secrets
+import shutil
 import signal
 import socket
 import subprocess
@@ -100,6 +101,7 @@ class TwoNodes:
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+        shutil.rmtree(self.root, ignore_errors=True)
 
 
 @pytest.fixture
