@@ -147,6 +147,26 @@ def _complete(db: Path) -> list:
     return [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
 
 
+def test_a_run_too_big_for_the_cluster_is_one_line_within_seconds(cluster, tmp_path):
+    """4 CPUs in all: a run of 1 + 4 env runners could never start (Tune would leave it
+    PENDING); a custom resource no node has, likewise."""
+    base = [sys.executable, "-m", "rl_scan.cli", "train", "--preset", "smoke", "--address",
+            cluster.address, "--results", str(tmp_path)]
+    for extra, needle in ((["--num-env-runners", "4"],
+                           "num_env_runners=4 is invalid: allowed at most 3 on this Ray "
+                           "cluster (4 CPUs; a run needs learner_cpus + num_env_runners = 5)"),
+                          (["--trial-resources", "trial_slot=2"],
+                           "allowed resources one node of this Ray cluster has (trial_slot: "
+                           "at most 1 on a node")):
+        start = time.monotonic()
+        out = subprocess.run(base + extra, env=cluster.env, capture_output=True, text=True,
+                             timeout=120)
+        assert out.returncode == 2 and time.monotonic() - start < 30
+        assert needle in out.stderr and out.stdout == ""
+        assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert not any(tmp_path.iterdir())
+
+
 def test_a_study_survives_losing_a_node_and_its_driver(cluster, tmp_path):
     started = time.monotonic()
     steps = 3200  # 8 iterations of the smoke preset per trial

@@ -57,7 +57,8 @@ RAY_FREE = ("scenario", "report")  # commands that never import Ray
 def quiet_ray() -> None:
     """Keep Ray's own lines out of the console (``--verbose`` keeps them): its INFO and
     WARNING notices (token authentication, "Started a local Ray instance", "You are running
-    POCA on the new API stack", Tune's result-file notes, RLlib deprecations). Errors stay.
+    POCA on the new API stack", Tune's result-file notes, RLlib deprecations) and Optuna's
+    INFO lines (our progress lines say what they did). Errors stay.
     Ray sets its loggers' levels when imported and again in ``ray.init`` (from
     RAY_LOGGER_LEVEL), so both are set here, before either happens."""
     import logging
@@ -68,6 +69,7 @@ def quiet_ray() -> None:
 
     for name in ("ray", "ray.rllib", "ray.tune"):
         logging.getLogger(name).setLevel(logging.ERROR)
+    logging.getLogger("optuna").setLevel(logging.WARNING)  # "A new study created in RDB"
 
 
 def check_outputs(args) -> None:
