@@ -11,6 +11,8 @@ Every rl-scan command writes under a results folder, and ``rl-scan report`` read
                       trial) and TUNE_DIR/<trial id>/ (Tune's) (``rl-scan ablate``).
   experiment folder   PROTOCOL_FILE, PRETRAIN_DIR/<run>/, ADAPT_DIR/<run>/, LOG_DIR/,
                       SUMMARY_FILE, TABLE_FILE (``rl-scan experiment meta-mrss``).
+  report folder       report.md/.html, figures/, marl_eval.json and REPORT_RUNS_FILE, from
+                      which ``rl-scan report`` rebuilds the report (``rl-scan report``).
 
 Our own files live beside Tune's folder, never in it: when an experiment is restored, Tune
 copies every JSON file under its folder to a staging copy and later syncs that copy back,
@@ -41,6 +43,7 @@ PROTOCOL_FILE = "protocol.yaml"  # a meta-MRSS experiment's plan (methods, tests
 PRETRAIN_DIR, ADAPT_DIR = "pretrain", "adapt"
 SUMMARY_FILE, TABLE_FILE = "summary.json", "table.md"
 DONE = "DONE"  # a finished run of an experiment (skipped when the experiment is re-run)
+REPORT_RUNS_FILE = "runs.json"  # in a report folder: every run it read (it rebuilds from this)
 NODES_FILE = "nodes.json"  # in a run folder: the Ray nodes its trial ran on, per iteration span
 NODES = "nodes"  # result key: this process's node and its remote env runners' nodes
 CHECKPOINT_STEPS = "rl_scan_env_steps.json"  # in a checkpoint: env steps it was taken at

@@ -191,7 +191,7 @@ def test_summary_means_and_stds_over_seeds_by_hand(tmp_path):
     # per-seed final coverage: (.9+.96)/2 = .93 and (.6+.85)/2 = .725
     assert meta["final_coverage"]["values"] == pytest.approx([0.93, 0.725])
     assert meta["final_coverage"]["mean"] == pytest.approx(0.8275)
-    assert meta["final_coverage"]["std"] == pytest.approx(0.1025)  # population std
+    assert meta["final_coverage"]["std"] == pytest.approx(0.1025 * 2 ** 0.5)  # sample std
     # steps to 80 % among runs that reached it: seed 0 (200+400)/2 = 300, seed 1: 200
     assert meta["steps_to_80"]["values"] == pytest.approx([300.0, 200.0])
     assert meta["reached_80"]["values"] == pytest.approx([1.0, 0.5])
@@ -202,10 +202,11 @@ def test_summary_means_and_stds_over_seeds_by_hand(tmp_path):
     assert meta["start_coverage"]["mean"] == pytest.approx(0.4)
     assert len(s["missing"]) == 3  # poca: test1 s0, test0 s1, test1 s1
     table = format_table(s)
-    # every cell from the values above (82.75 and 10.25 print as 82.7 and 10.2: binary floats)
+    # every cell from the values above (82.75 prints as 82.7: binary floats); sample stds:
+    # 0.1025 * sqrt(2) = 14.5 %, 50 * sqrt(2) = 71 steps, 25 * sqrt(2) = 35.4 %
     rows = table.splitlines()
-    assert rows[2] == ("| meta-mrss | 40.0 ± 0.0 | 82.7 ± 10.2 | 250 ± 50 (75 %) | "
-                       "25.0 ± 25.0 | 87.12 |")
+    assert rows[2] == ("| meta-mrss | 40.0 ± 0.0 | 82.7 ± 14.5 | 250 ± 71 (75 %) | "
+                       "25.0 ± 35.4 | 87.12 |")
     assert rows[3] == "| poca | - | 20.0 ± 0.0 | - (0 %) | 0.0 ± 0.0 | 60.16 |"
     assert "missing runs (3)" in table
 

@@ -119,7 +119,7 @@ def test_report_on_a_synthetic_study(tmp_path):
     poca = rows["poca"]
     assert poca["final_mean"] == pytest.approx(0.885)
     assert poca["final_std"] == pytest.approx(math.sqrt(
-        sum((x - 0.885) ** 2 for x in [0.96, 0.90, 0.98, 0.70]) / 4))
+        sum((x - 0.885) ** 2 for x in [0.96, 0.90, 0.98, 0.70]) / 3))  # sample std
     assert poca["iqm"] == pytest.approx((0.90 + 0.96) / 2)
     # success: 2 of poca's runs reached 95 % -> 2 x 3 of 12 episodes
     assert poca["success"] == pytest.approx(0.5) and poca["episodes"] == 12
@@ -156,6 +156,29 @@ def test_the_greedy_reference_line_is_the_greedy_teams_mean_coverage(tmp_path):
     assert math.isnan(greedy_reference(str(tmp_path / "moved.yaml")))  # no line, no error
 
 
+def test_a_report_rebuilds_from_its_own_folder(tmp_path):
+    """Every table regenerates from a report's runs.json; from marl_eval.json alone (older
+    reports) the coverage statistics and P(X > Y) do."""
+    import shutil
+
+    _study(tmp_path / "results", {"poca": [0.96, 0.90, 0.98, 0.70],
+                                  "ppo": [0.50, 0.60, 0.97, 0.40]})
+    first = build_report(tmp_path / "results", tmp_path / "first", reference=False)
+    again = build_report(first, tmp_path / "again", reference=False)
+    tables = [[line for line in (d / "report.md").read_text().splitlines()
+               if line.startswith("|") and "Python" not in line and "load" not in line]
+              for d in (first, again)]
+    assert tables[0] == tables[1] and any("| poca > ppo | 0.81" in t for t in tables[0])
+    old = tmp_path / "old"
+    old.mkdir()
+    shutil.copy(first / "marl_eval.json", old)  # a report from before runs.json
+    md = (build_report(old, tmp_path / "from_marl", reference=False) / "report.md").read_text()
+    assert "Rebuilt from an earlier report's `marl_eval.json`" in md
+    assert "| poca > ppo | 0.81" in md
+    poca = next(line for line in tables[0] if line.startswith("| poca |"))
+    assert poca.split("|")[3] in md  # the same final coverage mean ± std
+
+
 def test_comm_report_compares_scheme_1_with_each_scheme_on_one_panel_each(tmp_path):
     from PIL import Image
 
@@ -167,7 +190,7 @@ def test_comm_report_compares_scheme_1_with_each_scheme_on_one_panel_each(tmp_pa
     # P(1 > 2): (.55 vs .5, .6) -> 1 + 0, (.9 vs .5, .6) -> 1 + 1: 3 of 4 pairs
     # P(1 > 6): only (.9 vs .9) ties: 0.5 of 4 pairs
     assert "| 1 > 2 | 0.75" in md and "| 1 > 6 | 0.12" in md and "| 1 > 1-noinfo | 0.75" in md
-    assert "| 6 | 2/2 | 92.5 ± 2.5 |" in md and "| succeed |" in md  # paper's Table II
+    assert "| 6 | 2/2 | 92.5 ± 3.5 |" in md and "| succeed |" in md  # paper's Table II
     # eight conditions: a 4 x 2 grid of panels, not eight tangled curves in one
     width, height = Image.open(out / "figures" / "ablate-comm-quick.png").size
     assert width > 1.8 * 770 and height > 1.2 * 462
@@ -213,8 +236,8 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
     assert "| 30,000 (2/2) |" in md and "| 60,000 (1/2) |" in md
     # finals poca (0.9, 0.96) vs ppo (0.6, 0.82): poca wins all 4 pairs
     assert "| poca on ablation > ppo on ablation | 1.00" in md
-    # best checkpoint of poca_s1: mean 0.925, population std 0.0559, 2 of 4 successes
-    assert "| poca_s1 | poca on ablation | 60,000 | 96.0 | 92.5 ± 5.6 | 50.0 [15.0, 85.0] (4) |" \
+    # best checkpoint of poca_s1: mean 0.925, sample std 0.0645, 2 of 4 successes
+    assert "| poca_s1 | poca on ablation | 60,000 | 96.0 | 92.5 ± 6.5 | 50.0 [15.0, 85.0] (4) |" \
         in md
     assert "poca_s0 |" not in md.split("Secondary")[1].split("| run | env steps")[0]
     assert "core 25,997, RLlib env 18,203, PettingZoo 18,139 env steps/s" in md
@@ -230,8 +253,8 @@ def test_an_earlier_report_is_drawn_tabled_and_compared_beside_new_runs(tmp_path
     _run(tmp_path, "poca_s0", "poca", 0, [0.5, 0.97, 0.999])
     _run(tmp_path, "poca_s1", "poca", 1, [0.6, 0.9, 0.98])
     md = (build_report(tmp_path, reference=False, compare=example) / "report.md").read_text()
-    # the committed example's own row (report.md there: 99.3 ± 0.2, 326,667 (3/3))
-    assert "| poca on ablation [poca_vs_ppo] | 3/3 | 99.3 ± 0.2 |" in md
+    # the committed example's own row (report.md there: 99.3 ± 0.3, 326,667 (3/3))
+    assert "| poca on ablation [poca_vs_ppo] | 3/3 | 99.3 ± 0.3 |" in md
     assert "| 326,667 (3/3) | converged |" in md
     # finals (0.999, 0.98) against the example's three: 0.999 beats all, 0.98 none
     finals = sorted(r.final_coverage for r in collect(tmp_path).runs)

@@ -28,7 +28,14 @@ from typing import Any
 
 import numpy as np
 
-from rl_scan.reports.collect import Collection, RunRecord, collect, read_marl_eval
+from rl_scan.reports.collect import (
+    MARL_EVAL_FILE,
+    Collection,
+    RunRecord,
+    collect,
+    read_marl_eval,
+    runs_file,
+)
 from rl_scan.reports.figures import CONVERGED, plot_curves
 from rl_scan.reports.html import to_html
 from rl_scan.reports.stats import (
@@ -39,7 +46,7 @@ from rl_scan.reports.stats import (
     stratified_bootstrap_ci,
     wilson_interval,
 )
-from rl_scan.results import EPISODE_RETURN, read_json
+from rl_scan.results import EPISODE_RETURN, REPORT_RUNS_FILE, read_json
 from rl_scan.studies import ReportSpec
 
 RULE = (f"A condition **converged** if the mean over seeds of its final evaluation coverage "
@@ -69,9 +76,14 @@ def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
         strata: dict[str, list[float]] = defaultdict(list)
         for r in scored:
             strata[r.scenario].append(r.final_coverage)
-        episodes = sum(r.eval_episodes for r in scored)
-        successes = sum(r.final_success * r.eval_episodes for r in scored
-                        if not math.isnan(r.final_success))
+        # success over the final evaluations' episodes of the runs that have a figure;
+        # reports rebuilt from marl_eval.json know the rates but not the episode counts
+        with_success = [r for r in scored if not math.isnan(r.final_success)]
+        episodes = sum(r.eval_episodes for r in with_success)
+        successes = sum(r.final_success * r.eval_episodes for r in with_success)
+        rate = (successes / episodes if episodes else
+                float(np.mean([r.final_success for r in with_success])) if with_success
+                else math.nan)
         mean, std = mean_std(finals)
         speeds = [r.steps_to(SPEED_AT) for r in scored]
         reached = [x for x in speeds if not math.isnan(x)]
@@ -79,8 +91,8 @@ def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
             "condition": cond, "runs": len(rs), "scored": len(scored),
             "final_mean": mean, "final_std": std, "iqm": iqm(finals) if finals else math.nan,
             "iqm_ci": stratified_bootstrap_ci(list(strata.values())),
-            "success": successes / episodes if episodes else math.nan,
-            "success_ci": wilson_interval(successes, episodes), "episodes": episodes,
+            "success": rate, "episodes": episodes,
+            "success_ci": wilson_interval(successes, episodes),
             "converged": (not math.isnan(mean)) and mean >= CONVERGED,
             "speed": float(np.mean(reached)) if reached else math.nan,
             "speed_reached": len(reached), "finals": finals,
@@ -136,7 +148,8 @@ def _table(rows: list[dict[str, Any]], spec: ReportSpec) -> list[str]:
         cells = [r["condition"], f"{r['scored']}/{r['runs']}",
                  f"{_fmt(r['final_mean'])} ± {_fmt(r['final_std'])}",
                  f"{_fmt(r['iqm'])} [{_fmt(lo)}, {_fmt(hi)}]",
-                 f"{_fmt(r['success'])} [{_fmt(slo)}, {_fmt(shi)}] ({r['episodes']})",
+                 (f"{_fmt(r['success'])} [{_fmt(slo)}, {_fmt(shi)}] ({r['episodes']})"
+                  if r["episodes"] else f"{_fmt(r['success'])} (runs' mean)"),
                  f"{_fmt(r['speed'], False)} ({r['speed_reached']}/{r['scored']})",
                  "converged" if r["converged"] else "failed"]
         if spec.paper_column:
@@ -295,13 +308,23 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         raise ValueError(f"results_dir={str(results_dir)!r} holds no rl-scan runs or studies")
     if compare is not None:
         add_comparison(data, compare)
+    shown = (results_dir.relative_to(Path.cwd()) if results_dir.is_relative_to(Path.cwd())
+             else results_dir)
     md = [f"# rl-scan report: {results_dir.name}", "",
-          f"{len(data.runs)} runs read from `{results_dir}`. Scores are final-checkpoint "
-          "scores (each run's last evaluation); bands are ± 1 std (light) and the 95 % t "
+          f"{len(data.runs)} runs read from `{shown}`. Scores are final-checkpoint "
+          "scores (each run's last evaluation); bands are ± 1 sample std (light) and the 95 % t "
           "interval of the mean (dark, n - 1 degrees of freedom) over seeds. P(X > Y) is "
           "rliable's probability of improvement: per task (scenario) over all pairs of runs, "
           "averaged over the tasks both conditions ran, with a bootstrap CI stratified by "
-          "task. " + RULE, "", SPEED, "", DIFFERENCES, ""]
+          "task. Final coverage is the mean ± sample std (n - 1) over a condition's runs "
+          "(seeds, and scenes where there are several). Success is the share of the final "
+          "evaluations' episodes that reached 95 % coverage, pooled over the runs that have "
+          "one, with a Wilson interval that treats those episodes as independent trials. "
+          + RULE, "", SPEED, "", DIFFERENCES, ""]
+    if data.rebuilt_from == MARL_EVAL_FILE:
+        md += [f"Rebuilt from an earlier report's `{MARL_EVAL_FILE}`, which keeps each run's "
+               "evaluation curve and final success but not its wall time, evaluation "
+               "episode count (so no success CI) or critic diagnostics.", ""]
     groups: dict[str, list[RunRecord]] = defaultdict(list)
     for r in data.runs:
         groups[r.group].append(r)
@@ -333,10 +356,11 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
             md += ["", "| probability of improvement | P(X > Y) [95 % CI] |", "|---|---|"]
             md += [f"| {i['x']} > {i['y']} | {i['p']:.2f} [{i['ci'][0]:.2f}, {i['ci'][1]:.2f}] |"
                    for i in imp]
-        md += ["", "| run | env steps | wall time | env steps/s (end to end) |",
-               "|---|---|---|---|"]
-        md += [f"| {r.path.name} | {r.env_steps:,} | {_fmt(r.time_total_s, False)} s | "
-               f"{_fmt(r.env_steps_per_s, False)} |" for r in runs]
+        if data.rebuilt_from != MARL_EVAL_FILE:  # which keeps no wall times
+            md += ["", "| run | env steps | wall time | env steps/s (end to end) |",
+                   "|---|---|---|---|"]
+            md += [f"| {r.path.name} | {r.env_steps:,} | {_fmt(r.time_total_s, False)} s | "
+                   f"{_fmt(r.env_steps_per_s, False)} |" for r in runs]
         md.append("")
     hw = hardware()
     md += ["## Compute", "", "| item | value |", "|---|---|"]
@@ -346,6 +370,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
                     "`rl-scan bench env --json F`, end-to-end training speed from "
                     "`rl-scan bench train --json F` (put F in the results folder).", ""]
     (out / "report.md").write_text("\n".join(md))
-    (out / "marl_eval.json").write_text(json.dumps(marl_eval_json(data.runs), default=float))
+    (out / MARL_EVAL_FILE).write_text(json.dumps(marl_eval_json(data.runs), default=float))
+    (out / REPORT_RUNS_FILE).write_text(json.dumps(runs_file(data), default=float))
     (out / "report.html").write_text(to_html("\n".join(md), out))
     return out

@@ -11,7 +11,7 @@ experiment meant to run so a report can say what is missing.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -61,12 +61,24 @@ class RunRecord:
     def env_steps_per_s(self) -> float:
         return self.env_steps / self.time_total_s if self.time_total_s else math.nan
 
+    def to_json(self) -> dict[str, Any]:
+        return {**asdict(self), "path": str(self.path)}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> RunRecord:
+        critic = {k: [tuple(p) for p in v] for k, v in (data.get("critic") or {}).items()}
+        return cls(**{**data, "path": Path(data["path"]), "critic": critic})
+
 
 @dataclass
 class Collection:
     runs: list[RunRecord] = field(default_factory=list)
     planned: dict[str, int] = field(default_factory=dict)  # group -> runs it meant to have
     reports: dict[str, ReportSpec] = field(default_factory=dict)  # group -> what to compare
+    kinds: dict[str, str] = field(default_factory=dict)
+    """group -> what it is: "study:<name>", "meta:<pretrain|adapt>" or "runs" (loose)."""
+    rebuilt_from: str = ""
+    """The earlier report file these runs were read from ("" for run folders)."""
 
 
 def read_run(folder: Path, group: str, condition: str) -> RunRecord:
@@ -96,13 +108,12 @@ def _short(v: Any) -> str:
 
 
 def _place(folder: Path, meta: dict[str, Any], out: Collection) -> tuple[str, str]:
-    """(group, condition) of a run folder; records the group's plan and report spec."""
+    """(group, condition) of a run folder; records the group's plan and kind."""
     parent, top = folder.parent, folder.parent.parent
     if parent.name == R.TRIALS_DIR and (top / R.STUDY_FILE).is_file():
         study = R.read_yaml(top / R.STUDY_FILE) or {}
         out.planned[top.name] = int(study.get("trials", 0))
-        known = STUDIES.get(study.get("study", ""))
-        out.reports[top.name] = known.report if known else ReportSpec()
+        out.kinds[top.name] = f"study:{study.get('study', '')}"
         return top.name, trial_condition(meta.get("params") or {})
     if parent.name in (R.PRETRAIN_DIR, R.ADAPT_DIR):  # a meta-MRSS experiment
         group = f"{top.name}/{parent.name}"
@@ -110,33 +121,82 @@ def _place(folder: Path, meta: dict[str, Any], out: Collection) -> tuple[str, st
         planned = (plan.get("planned_runs") or {}).get(parent.name)
         if planned:
             out.planned[group] = int(planned)
-        out.reports[group] = META_MRSS_REPORT if parent.name == R.ADAPT_DIR else ReportSpec()
+        out.kinds[group] = f"meta:{parent.name}"
         return group, folder.name.split("_")[0]  # the method
+    out.kinds[LOOSE] = LOOSE
     return LOOSE, f"{meta.get('algo', '?')} on {(meta.get('env_config') or {}).get('scenario')}"
 
 
+def _specs(out: Collection) -> None:
+    """Each group's ReportSpec from its kind: a study's from the registry, meta-MRSS
+    adaptation's, and for loose runs POCA vs PPO on each scenario both ran on."""
+    for group, kind in out.kinds.items():
+        if group in out.reports:  # kept by the report this was rebuilt from
+            continue
+        if kind.startswith("study:"):
+            known = STUDIES.get(kind[len("study:"):])
+            out.reports[group] = known.report if known else ReportSpec()
+        elif kind.startswith("meta:"):
+            out.reports[group] = META_MRSS_REPORT if kind == f"meta:{R.ADAPT_DIR}" \
+                else ReportSpec()
+        else:
+            conditions = {r.condition for r in out.runs if r.group == group}
+            out.reports[group] = ReportSpec(comparisons=tuple(
+                (c, "ppo" + c[len("poca"):]) for c in sorted(conditions)
+                if c.startswith("poca on ") and "ppo" + c[len("poca"):] in conditions))
+
+
 def collect(root: str | Path) -> Collection:
-    """Every run under ``root`` (``root`` itself may be one)."""
+    """Every run under ``root`` (``root`` itself may be one), or, for a report folder
+    without run folders, the runs its REPORT_RUNS_FILE (or, for reports written before
+    that file existed, its marl_eval.json) recorded."""
     root = Path(root).resolve()
     out = Collection()
     for run_file in sorted(root.glob(f"**/{R.RUN_FILE}")):
         folder = run_file.parent
         group, condition = _place(folder, R.read_yaml(run_file) or {}, out)
         out.runs.append(read_run(folder, group, condition))
-    conditions = {r.condition for r in out.runs if r.group == LOOSE}
-    if conditions:  # loose runs: POCA vs PPO on each scenario both ran on
-        out.reports[LOOSE] = ReportSpec(comparisons=tuple(
-            (c, "ppo" + c[len("poca"):]) for c in sorted(conditions)
-            if c.startswith("poca on ") and "ppo" + c[len("poca"):] in conditions))
+    if not out.runs and (root / R.REPORT_RUNS_FILE).is_file():
+        data = R.read_json(root / R.REPORT_RUNS_FILE) or {}
+        out.runs = [RunRecord.from_json(r) for r in data.get("runs", [])]
+        out.planned, out.kinds = data.get("planned", {}), data.get("kinds", {})
+        out.reports = {group: ReportSpec(comparisons=tuple(tuple(p) for p in spec["comparisons"]),
+                                         paper_column=spec["paper_column"], paper=spec["paper"])
+                       for group, spec in data.get("reports", {}).items()}
+        out.rebuilt_from = R.REPORT_RUNS_FILE
+    elif not out.runs and (root / MARL_EVAL_FILE).is_file():
+        out.runs = read_marl_eval(root)
+        out.kinds = {r.group: _kind_from_name(r.group) for r in out.runs}
+        out.rebuilt_from = MARL_EVAL_FILE
+    _specs(out)
     return out
 
 
-def read_marl_eval(path: str | Path, label: str) -> list[RunRecord]:
+def _kind_from_name(group: str) -> str:
+    """A group's kind from its default name (reports older than REPORT_RUNS_FILE)."""
+    if group.startswith("ablate-") and group.count("-") >= 2:
+        return "study:" + group.split("-")[1]
+    if "/" in group:
+        return "meta:" + group.rsplit("/", 1)[1]
+    return LOOSE
+
+
+def runs_file(data: Collection) -> dict[str, Any]:
+    """REPORT_RUNS_FILE's content: every run as read, and each group's plan and kind."""
+    return {"runs": [r.to_json() for r in data.runs], "planned": data.planned,
+            "kinds": data.kinds,
+            "reports": {group: asdict(spec) for group, spec in data.reports.items()}}
+
+
+MARL_EVAL_FILE = "marl_eval.json"
+
+
+def read_marl_eval(path: str | Path, label: str | None = None) -> list[RunRecord]:
     """The runs of an earlier report's ``marl_eval.json`` (a report folder or the file),
-    as records whose condition ends in ``[label]``: curves without their run folders (a
-    committed example report keeps only this file)."""
+    as records whose condition ends in ``[label]`` (if given): curves without their run
+    folders, wall times or evaluation episode counts, which the file does not keep."""
     path = Path(path)
-    file = path / "marl_eval.json" if path.is_dir() else path
+    file = path / MARL_EVAL_FILE if path.is_dir() else path
     data = R.read_json(file) if file.is_file() else None
     if not isinstance(data, dict) or not isinstance(data.get("rl-scan"), dict):
         raise ConfigError(f"compare={str(path)!r} is invalid: allowed a report folder or a "
@@ -154,8 +214,9 @@ def read_marl_eval(path: str | Path, label: str) -> list[RunRecord]:
                 if evals and final.get("success"):
                     evals[-1]["success"] = final["success"][0]
                 runs.append(RunRecord(
-                    group=group, condition=f"{condition} [{label}]", seed=seed,
-                    path=Path(label) / f"{condition.replace(' ', '_')}_{run_id}", evals=evals,
+                    group=group, condition=f"{condition} [{label}]" if label else condition,
+                    seed=seed, path=Path(label or group) / f"{condition.replace(' ', '_')}_"
+                                                            f"{run_id}", evals=evals,
                     env_steps=int(evals[-1]["env_steps"]) if evals else 0, scenario=task))
     return runs
 

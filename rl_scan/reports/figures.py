@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from rl_scan.reports.collect import RunRecord
-from rl_scan.reports.stats import t_half_width
+from rl_scan.reports.stats import sample_std, t_half_width
 
 CONVERGED = 0.80  # the convergence rule's coverage (dotted line)
 
@@ -34,7 +34,7 @@ def curve_band(runs: list[RunRecord]) -> tuple[np.ndarray, ...]:
     for s in steps:
         v = np.array([c[s] for c in curves if s in c])
         mean.append(v.mean())
-        std.append(v.std())
+        std.append(sample_std(v))
         half.append(t_half_width(v))
         count.append(len(v))
     return tuple(np.array(x) for x in (steps, mean, std, half, count))

@@ -104,8 +104,15 @@ def t_half_width(values, level: float = 0.95) -> float:
     return float(t.ppf(0.5 + level / 2, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
 
 
-def mean_std(values) -> tuple[float, float]:
-    """Mean and population std (numpy's default), nan-safe for empty input."""
+def sample_std(values) -> float:
+    """Sample std (n - 1 in the denominator) of the finite values; 0 for one value."""
     x = np.asarray(values, dtype=float)
     x = x[~np.isnan(x)]
-    return (float(x.mean()), float(x.std())) if len(x) else (math.nan, math.nan)
+    return float(x.std(ddof=1)) if len(x) > 1 else (0.0 if len(x) else math.nan)
+
+
+def mean_std(values) -> tuple[float, float]:
+    """Mean and sample std (``sample_std``), nan-safe for empty input."""
+    x = np.asarray(values, dtype=float)
+    x = x[~np.isnan(x)]
+    return (float(x.mean()), sample_std(x)) if len(x) else (math.nan, math.nan)

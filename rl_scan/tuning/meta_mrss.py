@@ -35,6 +35,7 @@ from rl_scan import results as R
 from rl_scan.algorithms.registry import get_algorithm
 from rl_scan.config import ConfigError, check_range, fail
 from rl_scan.envs.sim.scenarios import N_TEST
+from rl_scan.reports.stats import sample_std
 from rl_scan.studies import PAPER_META_SUCCESS
 from rl_scan.tuning.driver import make_run_spec, required_cpus
 from rl_scan.tuning.jobs import Job, run_jobs
@@ -217,7 +218,7 @@ def summarize(root: Path, methods: list[str], tests: list[str], seeds: int) -> d
             reached = [s for s in steps if not math.isnan(s)]
             per_seed["steps_to_80"].append(float(np.mean(reached)) if reached else math.nan)
         out["methods"][method] = {
-            k: {"mean": _nanstat(np.nanmean, v), "std": _nanstat(np.nanstd, v), "values": v}
+            k: {"mean": _nanstat(np.nanmean, v), "std": sample_std(v), "values": v}
             for k, v in per_seed.items()}
         out["methods"][method]["runs"] = runs
     return out
