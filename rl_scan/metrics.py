@@ -14,3 +14,11 @@ CELLS_TOTAL = "cells_total"
 EPISODE_METRICS = (COVERAGE, SUCCESS, *STEPS_TO.values(), COLLISIONS,
                    *COLLISIONS_BY_KIND.values(), *RETURN_BY_KIND.values(), EPISODE_STEPS,
                    CELLS_SCANNED, CELLS_TOTAL)
+
+
+def steps_to_reach(curve: list[tuple[float, float]], target: float) -> float | None:
+    """Env steps of the first of two consecutive evaluations at or above ``target`` in a
+    curve of (env steps, mean coverage) (None if never): one noisy evaluation of a few
+    episodes does not count as reaching it. The reports and the meta-MRSS protocol use it."""
+    return next((curve[i][0] for i in range(len(curve) - 1)
+                 if curve[i][1] >= target and curve[i + 1][1] >= target), None)

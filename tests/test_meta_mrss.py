@@ -162,13 +162,19 @@ def test_curve_metrics_by_hand():
     curve = [{"env_steps": 400, "coverage": 0.5, "success": 0.0},
              {"env_steps": 800, "coverage": 0.82, "success": 0.0},
              {"env_steps": 1200, "coverage": 0.97, "success": 2 / 3}]
-    got = curve_metrics(curve)
+    got = curve_metrics(curve, budget=1600)
     assert math.isnan(got.pop("start_coverage"))  # no evaluation 0: started from scratch
-    assert got == {"final_coverage": 0.97, "steps_to_80": 800.0, "success": 2 / 3}
-    never = curve_metrics(curve[:1])
-    assert math.isnan(never["steps_to_80"]) and never["final_coverage"] == 0.5
-    warm = curve_metrics([{"env_steps": 0, "coverage": 0.85, "success": 0.0}, *curve])
-    assert warm["start_coverage"] == 0.85 and warm["steps_to_80"] == 0.0  # zero-shot
+    # area: 0.5 held over [0, 400], trapezoids to 1200, 0.97 held to the budget:
+    # (200 + 264 + 358 + 388) / 1600
+    assert got == pytest.approx({"final_coverage": 0.97, "steps_to_80": 800.0,
+                                 "reached_80": 1.0, "auc": 1210 / 1600, "success": 2 / 3})
+    never = curve_metrics(curve[:1], budget=1600)
+    assert never["steps_to_80"] == 1600 and never["reached_80"] == 0  # censored at the budget
+    noisy = curve_metrics([{"env_steps": 400, "coverage": 0.85}, {"env_steps": 800,
+                           "coverage": 0.6}, {"env_steps": 1200, "coverage": 0.9}], 1600)
+    assert noisy["steps_to_80"] == 1600  # no two consecutive evaluations at 80 %
+    warm = curve_metrics([{"env_steps": 0, "coverage": 0.85, "success": 0.0}, *curve], 1600)
+    assert warm["start_coverage"] == 0.85 and warm["steps_to_80"] == 800.0
 
 
 def _eval_file(root, method, test, seed, points):
@@ -179,36 +185,40 @@ def _eval_file(root, method, test, seed, points):
 
 
 def test_summary_means_and_stds_over_seeds_by_hand(tmp_path):
-    # seed 0: test0 reaches 80 % at 200 (final .9), test1 at 400 (final .96)
-    # seed 1: test0 never (final .6), test1 at 200 (final .85); test1 of "poca" is missing
+    """Budget 400. poca lacks test1 s1, so meta-mrss's test1 s1 is left out: both methods
+    are summarised on (test0 s0, test1 s0, test0 s1)."""
     _eval_file(tmp_path, "meta-mrss", "test:0", 0, [(0, 0.3), (200, 0.8), (400, 0.9)])
     _eval_file(tmp_path, "meta-mrss", "test:1", 0, [(0, 0.5), (200, 0.7), (400, 0.96)])
     _eval_file(tmp_path, "meta-mrss", "test:0", 1, [(200, 0.5), (400, 0.6)])
     _eval_file(tmp_path, "meta-mrss", "test:1", 1, [(200, 0.81), (400, 0.85)])
     _eval_file(tmp_path, "poca", "test:0", 0, [(200, 0.1), (400, 0.2)])
-    s = summarize(tmp_path, ["meta-mrss", "poca"], ["test:0", "test:1"], seeds=2)
+    _eval_file(tmp_path, "poca", "test:1", 0, [(200, 0.3), (400, 0.4)])
+    _eval_file(tmp_path, "poca", "test:0", 1, [(200, 0.2), (400, 0.3)])
+    s = summarize(tmp_path, ["meta-mrss", "poca"], ["test:0", "test:1"], seeds=2, budget=400)
+    assert s["left_out"] == ["meta-mrss_test1_s1"] and len(s["missing"]) == 1
     meta = s["methods"]["meta-mrss"]
-    # per-seed final coverage: (.9+.96)/2 = .93 and (.6+.85)/2 = .725
-    assert meta["final_coverage"]["values"] == pytest.approx([0.93, 0.725])
-    assert meta["final_coverage"]["mean"] == pytest.approx(0.8275)
-    assert meta["final_coverage"]["std"] == pytest.approx(0.1025 * 2 ** 0.5)  # sample std
-    # steps to 80 % among runs that reached it: seed 0 (200+400)/2 = 300, seed 1: 200
-    assert meta["steps_to_80"]["values"] == pytest.approx([300.0, 200.0])
-    assert meta["reached_80"]["values"] == pytest.approx([1.0, 0.5])
+    # seed 0: finals .9, .96 -> .93; seed 1: test0 only -> .6
+    assert meta["final_coverage"]["values"] == pytest.approx([0.93, 0.6])
+    assert meta["final_coverage"]["std"] == pytest.approx(0.33 / 2 ** 0.5)  # sample std
+    # steps to 80 %: seed 0 test0 at 200 (200 and 400 >= .8), test1 censored at 400 (only
+    # its last evaluation is >= .8); seed 1 test0 censored -> 300 and 400
+    assert meta["steps_to_80"]["values"] == pytest.approx([300.0, 400.0])
+    assert meta["reached_80"]["values"] == pytest.approx([0.5, 0.0])
+    # areas: test0 s0 (110 + 170) / 400, test1 s0 (120 + 166) / 400, test0 s1 (100 + 110) / 400
+    assert meta["auc"]["values"] == pytest.approx([(0.7 + 0.715) / 2, 0.525])
     assert meta["success"]["values"] == pytest.approx([0.5, 0.0])
-    # zero-shot: seed 0's runs start at .3 and .5 -> .4; seed 1's have no evaluation 0
-    assert meta["start_coverage"]["values"][0] == pytest.approx(0.4)
+    assert meta["start_coverage"]["values"][0] == pytest.approx(0.4)  # (.3 + .5) / 2
     assert math.isnan(meta["start_coverage"]["values"][1])
-    assert meta["start_coverage"]["mean"] == pytest.approx(0.4)
-    assert len(s["missing"]) == 3  # poca: test1 s0, test0 s1, test1 s1
-    table = format_table(s)
-    # every cell from the values above (82.75 prints as 82.7: binary floats); sample stds:
-    # 0.1025 * sqrt(2) = 14.5 %, 50 * sqrt(2) = 71 steps, 25 * sqrt(2) = 35.4 %
-    rows = table.splitlines()
-    assert rows[2] == ("| meta-mrss | 40.0 ± 0.0 | 82.7 ± 14.5 | 250 ± 71 (75 %) | "
-                       "25.0 ± 35.4 | 87.12 |")
-    assert rows[3] == "| poca | - | 20.0 ± 0.0 | - (0 %) | 0.0 ± 0.0 | 60.16 |"
-    assert "missing runs (3)" in table
+    poca = s["methods"]["poca"]
+    assert poca["final_coverage"]["values"] == pytest.approx([0.3, 0.3])
+    assert poca["auc"]["values"] == pytest.approx([(0.125 + 0.325) / 2, 0.225])
+    rows = format_table(s).splitlines()
+    assert rows[2] == ("| meta-mrss | 40.0 ± 0.0 | 76.5 ± 23.3 | 350 ± 71 (25 %) | "
+                       "61.6 ± 12.9 | 25.0 ± 35.4 | 87.12 |")
+    assert rows[3] == "| poca | - | 30.0 ± 0.0 | 400 ± 0 (0 %) | 22.5 ± 0.0 | 0.0 ± 0.0 | 60.16 |"
+    table = "\n".join(rows)
+    assert "(censored): 0.88 (goal <= 0.30)" in table  # 350 / 400
+    assert "missing runs (1): poca_test1_s1" in table and "left out" in table
 
 
 @pytest.mark.slow

@@ -215,12 +215,13 @@ def _run(root, name: str, algo: str, seed: int, curve: list[float], best=None):
 
 
 def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path):
-    _run(tmp_path, "poca_s0", "poca", 0, [0.5, 0.85, 0.9])  # 80 % first at 40k
-    _run(tmp_path, "poca_s1", "poca", 1, [0.81, 0.7, 0.96],  # at 20k
+    # speed: the first of two consecutive evaluations at 80 % (20k steps apart)
+    _run(tmp_path, "poca_s0", "poca", 0, [0.5, 0.85, 0.9])  # at 40k
+    _run(tmp_path, "poca_s1", "poca", 1, [0.81, 0.7, 0.96],  # never: 0.81 alone is noise
          best={"env_steps": 60000, "eval_coverage": 0.96, "coverage": [0.9, 1.0, 0.95, 0.85],
                "success": [0.0, 1.0, 1.0, 0.0]})
     _run(tmp_path, "ppo_s0", "ppo", 0, [0.3, 0.5, 0.6])  # never
-    _run(tmp_path, "ppo_s1", "ppo", 1, [0.4, 0.6, 0.82])  # at 60k
+    _run(tmp_path, "ppo_s1", "ppo", 1, [0.4, 0.85, 0.82])  # at 40k
     (tmp_path / "bench_env.json").write_text(json.dumps(
         {"load_avg_1m": 0.08, "core_steps_per_s": 25996.8, "rllib_steps_per_s": 18203.3,
          "pettingzoo_steps_per_s": 18138.9}))
@@ -228,12 +229,12 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
         {"load_avg_1m": 0.15, "runs": {"poca/fast": {"env_steps_per_s": 604.2,
                                                      "tree_pss_mb": 1877.4}}}))
     rows = {r["condition"]: r for r in condition_rows(collect(tmp_path).runs)}
-    assert rows["poca on ablation"]["speed"] == 30000 and rows["poca on ablation"][
-        "speed_reached"] == 2
-    assert rows["ppo on ablation"]["speed"] == 60000 and rows["ppo on ablation"][
+    assert rows["poca on ablation"]["speed"] == 40000 and rows["poca on ablation"][
+        "speed_reached"] == 1
+    assert rows["ppo on ablation"]["speed"] == 40000 and rows["ppo on ablation"][
         "speed_reached"] == 1
     md = (build_report(tmp_path, reference=False) / "report.md").read_text()
-    assert "| 30,000 (2/2) |" in md and "| 60,000 (1/2) |" in md
+    assert md.count("| 40,000 (1/2) |") == 2
     # finals poca (0.9, 0.96) vs ppo (0.6, 0.82): poca wins all 4 pairs
     assert "| poca on ablation > ppo on ablation | 1.00" in md
     # best checkpoint of poca_s1: mean 0.925, sample std 0.0645, 2 of 4 successes
@@ -253,9 +254,9 @@ def test_an_earlier_report_is_drawn_tabled_and_compared_beside_new_runs(tmp_path
     _run(tmp_path, "poca_s0", "poca", 0, [0.5, 0.97, 0.999])
     _run(tmp_path, "poca_s1", "poca", 1, [0.6, 0.9, 0.98])
     md = (build_report(tmp_path, reference=False, compare=example) / "report.md").read_text()
-    # the committed example's own row (report.md there: 99.3 ± 0.3, 326,667 (3/3))
+    # the committed example's own row (report.md there: 99.3 ± 0.3, 366,667 (3/3))
     assert "| poca on ablation [poca_vs_ppo] | 3/3 | 99.3 ± 0.3 |" in md
-    assert "| 326,667 (3/3) | converged |" in md
+    assert "| 366,667 (3/3) | converged |" in md
     # finals (0.999, 0.98) against the example's three: 0.999 beats all, 0.98 none
     finals = sorted(r.final_coverage for r in collect(tmp_path).runs)
     assert finals == [0.98, 0.999]

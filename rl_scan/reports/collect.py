@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rl_scan import metrics as M
 from rl_scan import results as R
 from rl_scan.config import ConfigError
 from rl_scan.studies import META_MRSS_REPORT, STUDIES, ReportSpec
@@ -53,9 +54,10 @@ class RunRecord:
         return float(self.evals[-1].get("success", math.nan)) if self.evals else math.nan
 
     def steps_to(self, coverage: float) -> float:
-        """Env steps of the first evaluation whose mean coverage reached ``coverage``
-        (NaN if none did): the report's learning / adaptation speed."""
-        return next((float(s) for s, c in self.curve if c >= coverage), math.nan)
+        """Env steps of the first of two consecutive evaluations at or above ``coverage``
+        (``metrics.steps_to_reach``; NaN if never): the report's learning speed."""
+        first = M.steps_to_reach(self.curve, coverage)
+        return math.nan if first is None else float(first)
 
     @property
     def env_steps_per_s(self) -> float:

@@ -11,8 +11,14 @@ Adaptation is POCA training started from the method's weights on ``test:N``, eva
 every ``eval_interval`` iterations. From each adaptation curve (evaluation coverage over
 adaptation env steps) we take, defined up front:
   final coverage  the last evaluation's mean coverage (the paper's "scanning success rate");
-  steps to 80 %   the first evaluation's env steps with mean coverage >= 0.8 (none if never);
+  steps to 80 %   the env steps of the first of two consecutive evaluations with mean
+                  coverage >= 0.8 (one noisy evaluation does not count); a run that never
+                  gets there counts as the whole adaptation budget (censored), and the share
+                  of runs that got there is reported beside it;
+  area            the area under the coverage curve over the budget, as a fraction;
   success         the last evaluation's fraction of episodes with coverage >= 95 %.
+Evaluations use ``eval_episodes`` episodes (10 in the quick and paper protocols). Every
+method is summarised on the same (scene, seed) pairs: those all methods have finished.
 
 Layout: an experiment folder of ``rl_scan.results``: its pre-training and adaptation runs
 are ordinary run folders, and a summary (JSON) and a table (Markdown) hold the results. A
@@ -76,6 +82,7 @@ def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protoco
     check_range("pretrain_steps", protocol.pretrain_steps, 1)
     check_range("adapt_steps", protocol.adapt_steps, 1)
     check_range("eval_interval", protocol.eval_interval, 1)
+    check_range("eval_episodes", protocol.eval_episodes, 1)
 
 
 def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
@@ -108,7 +115,8 @@ def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
                          preset_name=protocol.train_preset, seed=seed,
                          init_from=pre.folder / pre.name if pre else None,
                          preset_overrides={**common, "total_env_steps": protocol.adapt_steps,
-                                           "evaluation_interval": protocol.eval_interval}),
+                                           "evaluation_interval": protocol.eval_interval,
+                                           "evaluation_episodes": protocol.eval_episodes}),
                     after=pre))
     return jobs
 
@@ -167,56 +175,71 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
                          for kind in (R.PRETRAIN_DIR, R.ADAPT_DIR)}})
     console.print(f"[bold]meta-mrss[/]: {len(plan)} runs, {workers} at a time -> {root}")
     run_jobs(plan, workers, console, address=address)
-    summary = summarize(root, methods, tests, seeds)
+    summary = summarize(root, methods, tests, seeds, budget=protocol.adapt_steps)
     R.write_json(root / R.SUMMARY_FILE, summary)
     (root / R.TABLE_FILE).write_text(format_table(summary))
     console.print(format_table(summary))
     return summary
 
 
-def curve_metrics(entries: list[dict[str, Any]], target: float = TARGET) -> dict[str, float]:
-    """Final coverage, env steps to ``target`` coverage (nan if never), final success, and
-    the start weights' coverage before adaptation (evaluation 0; nan without one)."""
+def curve_metrics(entries: list[dict[str, Any]], budget: float,
+                  target: float = TARGET) -> dict[str, float]:
+    """One adaptation curve's figures, defined up front (module doc): final coverage,
+    env steps to ``target`` (the first of two consecutive evaluations at or above it;
+    ``budget`` if never: censored, with ``reached`` 0), the area under the coverage curve
+    over [0, budget] as a fraction (a held value before the first and after the last
+    evaluation), final success, and the start weights' coverage (evaluation 0, else nan)."""
     if not entries:
-        return {"final_coverage": math.nan, "steps_to_80": math.nan, "success": math.nan,
-                "start_coverage": math.nan}
-    reached = [e["env_steps"] for e in entries if e.get(M.COVERAGE, 0.0) >= target]
-    start = entries[0][M.COVERAGE] if entries[0]["env_steps"] == 0 else math.nan
-    return {"final_coverage": float(entries[-1][M.COVERAGE]),
-            "steps_to_80": float(reached[0]) if reached else math.nan,
+        return {"final_coverage": math.nan, "steps_to_80": math.nan, "reached_80": math.nan,
+                "auc": math.nan, "success": math.nan, "start_coverage": math.nan}
+    steps = [float(e["env_steps"]) for e in entries]
+    cover = [float(e.get(M.COVERAGE, 0.0)) for e in entries]
+    first = M.steps_to_reach(list(zip(steps, cover)), target)
+    xs = [0.0, *steps, max(budget, steps[-1])]
+    ys = [cover[0], *cover, cover[-1]]
+    auc = float(np.trapezoid(ys, xs) / xs[-1]) if xs[-1] > 0 else math.nan
+    start = cover[0] if steps[0] == 0 else math.nan
+    return {"final_coverage": cover[-1],
+            "steps_to_80": float(first) if first is not None else float(budget),
+            "reached_80": float(first is not None), "auc": auc,
             "success": float(entries[-1].get(M.SUCCESS, math.nan)),
             "start_coverage": float(start)}
 
 
-def summarize(root: Path, methods: list[str], tests: list[str], seeds: int) -> dict:
-    """Per method: each seed's mean over test scenes, then mean and std over seeds."""
-    out: dict[str, Any] = {"methods": {}, "missing": []}
+def summarize(root: Path, methods: list[str], tests: list[str], seeds: int,
+              budget: float) -> dict:
+    """Per method: each seed's mean over the test scenes, then mean and sample std over
+    seeds. Every method is summarised on the same (scene, seed) pairs: those that all
+    methods have finished; the others are listed as missing or left out."""
+    curves: dict[tuple[str, str, int], list] = {}
+    out: dict[str, Any] = {"methods": {}, "missing": [], "left_out": []}
     for method in methods:
-        per_seed: dict[str, list[float]] = {"final_coverage": [], "steps_to_80": [],
-                                            "success": [], "reached_80": [],
-                                            "start_coverage": []}
+        for seed in range(seeds):
+            for test in tests:
+                run = root / R.ADAPT_DIR / f"{method}_{scenario_label(test)}_s{seed}"
+                if (run / R.EVAL_FILE).is_file():
+                    curves[method, test, seed] = R.read_evals(run)
+                else:
+                    out["missing"].append(str(run))
+    common = [(t, s) for s in range(seeds) for t in tests
+              if all((m, t, s) in curves for m in methods)]
+    out["left_out"] = sorted(f"{m}_{scenario_label(t)}_s{s}" for (m, t, s) in curves
+                             if (t, s) not in common)
+    out["common"] = [f"{t} s{s}" for t, s in common]
+    keys = ("final_coverage", "steps_to_80", "reached_80", "auc", "success", "start_coverage")
+    for method in methods:
+        per_seed: dict[str, list[float]] = {k: [] for k in keys}
         runs = {}
         for seed in range(seeds):
             rows = []
-            for test in tests:
-                run = root / R.ADAPT_DIR / f"{method}_{scenario_label(test)}_s{seed}"
-                if not (run / R.EVAL_FILE).is_file():
-                    out["missing"].append(str(run))
-                    continue
-                entries = R.read_evals(run)
-                rows.append(curve_metrics(entries))
-                runs[run.name] = {"curve": [(e["env_steps"], e[M.COVERAGE]) for e in entries],
-                                  **rows[-1]}
-            if not rows:
-                continue
-            steps = [r["steps_to_80"] for r in rows]
-            per_seed["final_coverage"].append(float(np.mean([r["final_coverage"] for r in rows])))
-            per_seed["start_coverage"].append(_nanstat(np.nanmean,
-                                                       [r["start_coverage"] for r in rows]))
-            per_seed["success"].append(float(np.nanmean([r["success"] for r in rows])))
-            per_seed["reached_80"].append(float(np.mean([not math.isnan(s) for s in steps])))
-            reached = [s for s in steps if not math.isnan(s)]
-            per_seed["steps_to_80"].append(float(np.mean(reached)) if reached else math.nan)
+            for test in (t for t, s in common if s == seed):
+                entries = curves[method, test, seed]
+                rows.append(curve_metrics(entries, budget))
+                runs[f"{method}_{scenario_label(test)}_s{seed}"] = {
+                    "curve": [(e["env_steps"], e[M.COVERAGE]) for e in entries], **rows[-1]}
+            if rows:
+                for k in keys:
+                    per_seed[k].append(_nanstat(np.nanmean, [r[k] for r in rows]))
         out["methods"][method] = {
             k: {"mean": _nanstat(np.nanmean, v), "std": sample_std(v), "values": v}
             for k, v in per_seed.items()}
@@ -240,11 +263,13 @@ def _nanstat(func, values: list[float]) -> float:
 
 
 def format_table(summary: dict) -> str:
-    """Markdown: method x (zero-shot coverage, final coverage, steps to 80 %, success),
-    mean +- std over seeds, with the paper's scanning success rates beside ours."""
+    """Markdown: method x (zero-shot coverage, final coverage, censored steps to 80 %, area
+    under the curve, success), mean +- sample std over seeds, the paper's figures beside."""
     lines = ["| method | coverage % before adaptation (zero-shot) | final coverage % | "
-             "env steps to 80 % (runs reaching it) | success % | "
-             "paper's scanning success % |", "|---|---|---|---|---|---|"]
+             "env steps to 80 % (censored; runs reaching it) | area under the coverage "
+             "curve % | success % | paper's scanning success % |",
+             "|---|---|---|---|---|---|---|"]
+
     def pm(stats, key, scale=1.0, fmt="{:.1f}"):
         m, sd = stats[key]["mean"], stats[key]["std"]
         return "-" if math.isnan(m) else f"{fmt.format(m * scale)} ± {fmt.format(sd * scale)}"
@@ -255,13 +280,20 @@ def format_table(summary: dict) -> str:
                      f"{pm(s, 'final_coverage', 100)} | "
                      f"{pm(s, 'steps_to_80', 1, '{:,.0f}')} "
                      f"({'-' if math.isnan(reach) else f'{100 * reach:.0f} %'}) | "
+                     f"{pm(s, 'auc', 100)} | "
                      f"{pm(s, 'success', 100)} | {PAPER_META_SUCCESS.get(method, '-')} |")
     meta, poca = summary["methods"].get("meta-mrss"), summary["methods"].get("poca")
     if meta and poca:
         a, b = meta["steps_to_80"]["mean"], poca["steps_to_80"]["mean"]
         ratio = "-" if math.isnan(a) or math.isnan(b) else f"{a / b:.2f}"
-        lines.append(f"\nmeta-MRSS / standard POCA env steps to 80 %: {ratio} (goal <= 0.30)")
+        lines.append(f"\nmeta-MRSS / standard POCA env steps to 80 % (censored): {ratio} "
+                     "(goal <= 0.30)")
+    lines.append(f"\nscenes x seeds every method finished (all compared on these): "
+                 f"{len(summary.get('common', []))}")
     if summary["missing"]:
         lines.append(f"\nmissing runs ({len(summary['missing'])}): "
                      + ", ".join(Path(m).name for m in summary["missing"]))
+    if summary.get("left_out"):
+        lines.append(f"\nleft out (another method lacks that scene and seed) "
+                     f"({len(summary['left_out'])}): " + ", ".join(summary["left_out"]))
     return "\n".join(lines) + "\n"

@@ -114,10 +114,13 @@ class Protocol:
     pretrain_steps: int
     adapt_steps: int
     eval_interval: int
+    eval_episodes: int = 10
+    """Episodes per adaptation evaluation: steps to 80 % is read from them."""
 
 
 PROTOCOLS = {  # the meta-MRSS experiment's budgets (`rl-scan experiment meta-mrss`)
-    "smoke": Protocol("smoke", pretrain_steps=800, adapt_steps=800, eval_interval=1),
+    "smoke": Protocol("smoke", pretrain_steps=800, adapt_steps=800, eval_interval=1,
+                      eval_episodes=1),
     "quick": Protocol("quick", pretrain_steps=100_000, adapt_steps=40_000, eval_interval=2),
     "paper": Protocol("paper", pretrain_steps=8_000_000, adapt_steps=2_000_000,
                       eval_interval=10),
