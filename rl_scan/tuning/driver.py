@@ -141,8 +141,8 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
         with checkpoint.as_directory() as folder:
             algorithm.restore_from_path(folder)
             steps = (R.read_json(Path(folder) / R.CHECKPOINT_STEPS) or {}).get("env_steps", 0)
-        if steps >= preset.total_env_steps:  # restored at its end (a resumed study may do
-            algorithm.stop()                 # this): nothing left to train
+        if steps >= preset.total_env_steps:  # restored at its end: nothing left to train
+            algorithm.stop()  # (a study resumed after its driver died may do this)
             return
     nodes = placement(algorithm)
     try:

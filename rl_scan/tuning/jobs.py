@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -84,9 +85,9 @@ class Job:
         log = self.folder.parent / LOG_DIR / f"{self.folder.name}_{self.name}.log"
         log.parent.mkdir(parents=True, exist_ok=True)
         with open(log, "ab") as err:  # stdout (progress lines) goes to the terminal
-            proc = subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(spec)],
-                                    stderr=err, start_new_session=True,
-                                    preexec_fn=_stop_with_parent)
+            proc = subprocess.Popen([sys.executable, "-c", _CHILD,
+                                     json.dumps({**spec, "parent_pid": os.getpid()})],
+                                    stderr=err, start_new_session=True)
             with _CHILDREN_LOCK:
                 _CHILDREN.add(proc)
             try:
@@ -112,13 +113,15 @@ def _str_or_none(value: Any) -> str | None:
     return None if value is None else str(value)
 
 
-def _stop_with_parent() -> None:
-    """In a child before exec (Linux): SIGINT when the parent dies, so a killed driver's
-    runs stop as after Ctrl+C (Tune keeps their state) instead of running on unowned."""
+def _stop_with_parent(parent_pid: int) -> None:
+    """SIGINT this process when its parent dies (Linux), so a killed driver's runs stop as
+    after Ctrl+C (Tune keeps their state) instead of running on unowned."""
     if sys.platform.startswith("linux"):
         import ctypes
 
         ctypes.CDLL(None).prctl(1, signal.SIGINT)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent_pid:  # it died before the line above
+        raise KeyboardInterrupt
 
 
 def child_main(spec_json: str) -> int:
@@ -128,9 +131,13 @@ def child_main(spec_json: str) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     spec = json.loads(spec_json)
     try:
+        _stop_with_parent(spec.pop("parent_pid"))
         _run(Path(spec.pop("folder")), spec.pop("name"), **spec)
     except RunInterrupted as e:
         print(f"interrupted: {e}", file=sys.stderr)  # the parent says how to resume
+        return 130
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
         return 130
     return 0
 
