@@ -66,6 +66,13 @@ def test_bench_env_smoke_writes_figures(capsys, tmp_path):
         assert res[key] > 0
     assert res["rays_per_step"] == 4 * 216
     assert res["greedy_ablation_coverage"] > res["random_ablation_coverage"]
+    from rl_scan.envs.core import ScanCore  # the same episode played here, independently
+    from rl_scan.envs.episode import run_episode
+    from rl_scan.envs.heuristics import GreedyTeam
+
+    core = ScanCore({"scenario": "ablation"})
+    assert res["greedy_ablation_coverage"] == run_episode(core, GreedyTeam(core),
+                                                          seed=0)["coverage"]
 
 
 @pytest.mark.parametrize("argv,needle", [
