@@ -16,6 +16,7 @@ from rl_scan.algorithms.poca import columns as C
 from rl_scan.algorithms.poca import poca_config
 from rl_scan.algorithms.poca.losses import explained_variance, lambda_returns, standardize
 from rl_scan.algorithms.poca.modules import CRITIC_ID
+from rl_scan.config import ConfigError
 from rl_scan.results import EV_BASELINE, EV_VALUE
 
 
@@ -98,6 +99,31 @@ def test_targets_are_lambda_returns_of_the_group_reward_minus_baselines():
     total = sum(np.asarray(sa.get_rewards()) for sa in ep.agent_episodes.values())
     quad_rows = rows[C.GROUP_REW].numpy()[: len(total)]
     np.testing.assert_allclose(quad_rows, total)
+
+
+def test_the_review_ablations_use_g_minus_v_and_the_mean_group_reward():
+    """advantage_baseline='value': every robot's advantage is G - V (no b_i);
+    group_reward='mean': the group reward is the robots' mean, not their sum."""
+    config = poca_config({"team": {"wheeled": 2, "quad": 2}, "max_steps": 12},
+                         train_batch_size=40, minibatch_size=32, num_epochs=1,
+                         num_envs_per_env_runner=2)
+    config.poca(advantage_baseline="value", group_reward="mean")
+    runner = MultiAgentEnvRunner(config=config)
+    learner = config.build_learner(env=None, spaces=runner.get_spaces())
+    episodes = runner.sample(num_timesteps=30, random_actions=False)
+    batch = learner._learner_connector(rl_module=learner.module, batch={}, episodes=episodes,
+                                       shared_data={})
+    rows = batch["quad"]
+    v = rows[C.OLD_VALUES].numpy()
+    g = rows[C.RETURNS].numpy()
+    np.testing.assert_allclose(rows[Postprocessing.ADVANTAGES].numpy(),
+                               standardize(g - v, rows[Columns.LOSS_MASK].numpy()),
+                               rtol=1e-4, atol=1e-4)
+    ep = episodes[0]
+    total = sum(np.asarray(sa.get_rewards()) for sa in ep.agent_episodes.values())
+    np.testing.assert_allclose(rows[C.GROUP_REW].numpy()[: len(total)], total / 4, rtol=1e-6)
+    with pytest.raises(ConfigError, match="advantage_baseline='v' is invalid"):
+        config.copy(copy_frozen=False).poca(advantage_baseline="v")
 
 
 def test_one_update_moves_actors_and_critic():

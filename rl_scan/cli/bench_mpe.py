@@ -17,6 +17,12 @@ from rl_scan import results as R
 
 ENV_NAME = "rl_scan_mpe_simple_spread"
 MODULE = "agent"
+ALGOS = {  # name -> (algorithm, POCA settings): the ablations of issue 14's review
+    "ppo": ("ppo", {}),
+    "poca": ("poca", {}),
+    "poca-value-baseline": ("poca", {"advantage_baseline": "value"}),
+    "poca-mean-reward": ("poca", {"group_reward": "mean"}),
+}
 
 
 def make_mpe_env(config: dict[str, Any] | None = None):
@@ -34,7 +40,7 @@ def _module(agent_id: str, *args, **kwargs) -> str:
 
 def mpe_config(algo: str, seed: int, *, train_batch_size: int, minibatch_size: int,
                num_epochs: int, hiddens: list[int], value_clip: float | None = None):
-    """The AlgorithmConfig for ``algo`` ('ppo' or 'poca') on simple_spread."""
+    """The AlgorithmConfig for ``algo`` (a key of ``ALGOS``) on simple_spread."""
     from ray.rllib.algorithms.ppo import PPOConfig
     from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
     from ray.tune.registry import register_env
@@ -42,13 +48,15 @@ def mpe_config(algo: str, seed: int, *, train_batch_size: int, minibatch_size: i
     from rl_scan.algorithms.poca import POCAConfig, layout_from_spaces
 
     register_env(ENV_NAME, make_mpe_env)
+    algo, settings = ALGOS[algo]
     if algo == "poca":
         probe = make_mpe_env().par_env
         ids = sorted(probe.possible_agents)
         config = POCAConfig().poca(
             team=layout_from_spaces(ids, {a: probe.observation_space(a) for a in ids},
                                     {a: probe.action_space(a) for a in ids}, _module),
-            actor_hiddens=hiddens, critic_hidden=hiddens[-1], value_clip=value_clip)
+            actor_hiddens=hiddens, critic_hidden=hiddens[-1], value_clip=value_clip,
+            **settings)
         config = config.rl_module(rl_module_spec=config.module_specs())
     else:
         config = PPOConfig().rl_module(model_config=DefaultModelConfig(

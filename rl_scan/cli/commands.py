@@ -133,9 +133,9 @@ def bench_train_cmd(args: argparse.Namespace) -> int:
 
 
 def bench_mpe_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.cli.bench_mpe import run_bench_mpe
+    from rl_scan.cli.bench_mpe import ALGOS, run_bench_mpe
 
-    algos = _parse_algos(args.algos, ("poca", "ppo"))
+    algos = _parse_algos(args.algos, tuple(ALGOS))
     for name in ("seeds", "env_steps"):
         if getattr(args, name) < 1:
             raise ConfigError(f"{name}={getattr(args, name)} is invalid: allowed an integer >= 1")

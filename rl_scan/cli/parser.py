@@ -140,7 +140,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="External check: train each algorithm on simple_spread_v3 (mpe2, 3 "
                     "agents, continuous actions) with the same actor size, budget and seeds, "
                     "and print the final mean episode returns.")
-    bmpe.add_argument("--algos", default="ppo,poca", help="comma-separated algorithms")
+    bmpe.add_argument("--algos", default="ppo,poca",
+                      help="comma-separated, of ppo, poca, and POCA's ablations "
+                           "poca-value-baseline (advantage G - V for every agent) and "
+                           "poca-mean-reward (group reward = mean over agents)")
     bmpe.add_argument("--seeds", type=int, default=3)
     bmpe.add_argument("--env-steps", type=int, default=100_000, help="budget per run")
     bmpe.add_argument("--json", default=None, help="also write curves and figures here")

@@ -32,10 +32,12 @@ class AddGroupColumns(ConnectorV2):
     """Group observation/action/mask, own slot and group reward for every agent row."""
 
     def __init__(self, input_observation_space=None, input_action_space=None, *,
-                 slots: list[str], obs_dim: int, act_dim: int, team_reward: bool = False):
+                 slots: list[str], obs_dim: int, act_dim: int, team_reward: bool = False,
+                 mean_reward: bool = False):
         super().__init__(input_observation_space, input_action_space)
         self.slot_of = {aid: i for i, aid in enumerate(slots)}
         self.obs_dim, self.act_dim, self.team_reward = obs_dim, act_dim, team_reward
+        self.mean_reward = mean_reward  # ablation: the group reward over the robots present
 
     def group_arrays(self, ma_episode) -> dict[str, np.ndarray]:
         """The per-step group arrays of one multi-agent episode chunk."""
@@ -64,6 +66,8 @@ class AddGroupColumns(ConnectorV2):
             elif not np.array_equal(rew, r):  # in team mode every robot holds it
                 raise ValueError(f"reward_mode='team' but robot {aid} of episode "
                                  f"{ma_episode.id_} got rewards that differ from its team's")
+        if self.mean_reward:
+            rew = rew / np.maximum(present.sum(axis=1), 1.0)
         return {"obs": obs, "act": act, "present": present, "rew": rew}
 
     def __call__(self, *, rl_module, batch: dict[str, Any], episodes, explore=None,
@@ -127,10 +131,11 @@ class POCATargets(ConnectorV2):
 
     def __init__(self, input_observation_space=None, input_action_space=None, *,
                  gamma: float, lambda_: float, minibatch_size: int | None = None,
-                 table_key: str = TRAIN_TABLE):
+                 table_key: str = TRAIN_TABLE, value_baseline: bool = False):
         super().__init__(input_observation_space, input_action_space)
         self.gamma, self.lambda_, self.minibatch_size = gamma, lambda_, minibatch_size
         self.table_key = table_key
+        self.value_baseline = value_baseline  # ablation: advantages G - V, no b_i
 
     def __call__(self, *, rl_module, batch: dict[str, Any], episodes, shared_data=None,
                  metrics=None, **kwargs) -> Any:
@@ -162,7 +167,8 @@ class POCATargets(ConnectorV2):
             if metrics is not None:  # how much of the return b_i explains, per kind
                 metrics.log_value((module_id, EV_BASELINE), explained_variance(
                     returns[valid], baselines.cpu().numpy()[valid]), window=1)
-            advantages = standardize(returns - baselines.cpu().numpy(), np_[Columns.LOSS_MASK])
+            reference = values if self.value_baseline else baselines
+            advantages = standardize(returns - reference.cpu().numpy(), np_[Columns.LOSS_MASK])
             rows[Postprocessing.ADVANTAGES] = torch.as_tensor(advantages, device=device)
             rows[C.RETURNS] = torch.as_tensor(returns, device=device)
             rows[C.OLD_VALUES], rows[C.OLD_BASELINES] = values, baselines

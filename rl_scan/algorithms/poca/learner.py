@@ -71,10 +71,12 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
             team = cfg.poca_team
             self._learner_connector.prepend(AddGroupColumns(
                 slots=team["slots"], obs_dim=max(team["obs_dims"]),
-                act_dim=max(team["act_dims"]), team_reward=team["team_reward"]))
+                act_dim=max(team["act_dims"]), team_reward=team["team_reward"],
+                mean_reward=getattr(cfg, "group_reward", "sum") == "mean"))
             self._learner_connector.prepend(AddOneTsToEpisodesAndTruncate())
             self._learner_connector.append(POCATargets(
-                gamma=cfg.gamma, lambda_=cfg.lambda_, minibatch_size=cfg.minibatch_size))
+                gamma=cfg.gamma, lambda_=cfg.lambda_, minibatch_size=cfg.minibatch_size,
+                value_baseline=getattr(cfg, "advantage_baseline", "") == "value"))
 
     @override(TorchLearner)
     def compute_losses(self, *, fwd_out: dict[str, Any], batch: dict[str, Any]

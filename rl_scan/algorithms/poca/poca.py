@@ -25,7 +25,7 @@ from rl_scan.algorithms.common import ACTOR_HIDDENS, DECAY_ENDS, configure_scan,
 from rl_scan.algorithms.overlap import OverlappedSampling, OverlappedSamplingConfig
 from rl_scan.algorithms.poca.learner import POCATorchLearner
 from rl_scan.algorithms.poca.modules import CRITIC_ID, GaussianActor, POCACritic
-from rl_scan.config import check_range
+from rl_scan.config import check_range, fail
 from rl_scan.envs.observations import action_spaces, kind_of, observation_spaces
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
 from rl_scan.envs.sim.robots import KINDS
@@ -75,17 +75,31 @@ class POCAConfig(OverlappedSamplingConfig, PPOConfig):
         self.value_clip: float | None = None  # None: clip_param, as ML-Agents does
         self.clip_param_schedule: list | None = None  # [[env steps, clip], ...] or None
         self.normalize_returns = True  # the critic predicts in running return units
+        self.advantage_baseline = "counterfactual"  # ablation: "value" (G - V for all)
+        self.group_reward = "sum"  # ablation: "mean" (the sum over the robots present)
 
     def poca(self, *, team: dict[str, Any] = NotProvided, actor_hiddens=NotProvided,
              critic_hidden: int = NotProvided, critic_heads: int = NotProvided,
              value_clip: float | None = NotProvided,
-             normalize_returns: bool = NotProvided) -> POCAConfig:
+             normalize_returns: bool = NotProvided, advantage_baseline: str = NotProvided,
+             group_reward: str = NotProvided) -> POCAConfig:
         """POCA-specific settings; ``team`` comes from ``team_layout(env_config)``.
 
         ``value_clip``: how far V and b_i may move from their collection-time values per
         update in the clipped regression (None: ``clip_param``, as ML-Agents; ``inf``: off),
         in units of the running return statistics when ``normalize_returns`` (default).
+        Ablations of the issue-14 review: ``advantage_baseline="value"`` gives every robot
+        G - V (no counterfactual baseline), ``group_reward="mean"`` divides the group
+        reward by the robots present.
         """
+        if advantage_baseline is not NotProvided:
+            if advantage_baseline not in ("counterfactual", "value"):
+                fail("advantage_baseline", advantage_baseline, "'counterfactual' or 'value'")
+            self.advantage_baseline = advantage_baseline
+        if group_reward is not NotProvided:
+            if group_reward not in ("sum", "mean"):
+                fail("group_reward", group_reward, "'sum' or 'mean'")
+            self.group_reward = group_reward
         if normalize_returns is not NotProvided:
             self.normalize_returns = bool(normalize_returns)
         if value_clip is not NotProvided:
