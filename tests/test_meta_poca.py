@@ -207,6 +207,8 @@ def test_bad_meta_settings_fail_before_building():
         meta_poca_config({}, tasks=0, episodes=1).validate()
     with pytest.raises(ConfigError, match="meta.epochs"):
         meta_poca_config({}, tasks=1, episodes=1, meta_epochs=0).validate()
+    with pytest.raises(ConfigError, match=r"meta.tasks=6 is invalid: allowed .*5"):
+        meta_poca_config({}, tasks=6, episodes=1, task_pool=5).validate()
     with pytest.raises(ConfigError, match="num_env_runners"):
         meta_poca_config({}, tasks=1, episodes=1, num_env_runners=1).validate()
 

@@ -89,6 +89,7 @@ class MetaPOCAConfig(POCAConfig, DifferentiableAlgorithmConfig):
         check_range("meta.inner_lr", self.inner_lr, 0.0, lo_open=True)
         check_range("meta.epochs", self.meta_epochs, 1, 100)
         check_range("meta.task_pool", self.task_pool, 1, N_TRAIN)
+        check_range("meta.tasks", self.meta_tasks, 1, self.task_pool)  # distinct tasks
         if self.meta_order not in (1, 2):
             raise ConfigError(f"meta.order={self.meta_order!r}: allowed 1 (first order, "
                               "inner Adam) or 2 (second order, inner SGD)")
@@ -133,8 +134,7 @@ class MetaPOCA(POCA):
         draw the same tasks."""
         cfg = self.config
         rng = np.random.default_rng([cfg.seed or 0, iteration])
-        ids = rng.choice(cfg.task_pool, size=cfg.meta_tasks,
-                         replace=cfg.meta_tasks > cfg.task_pool)
+        ids = rng.choice(cfg.task_pool, size=cfg.meta_tasks, replace=False)
         return [f"train:{int(i)}" for i in ids]
 
     @override(POCA)
