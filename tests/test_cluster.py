@@ -192,7 +192,7 @@ def test_a_study_survives_losing_a_node_and_its_driver(cluster, tmp_path):
 
     _wait(lambda: on_worker_with_a_checkpoint() is not None, 240,
           "a trial on the worker node past its first checkpoint")
-    first = {run.name: _trial_nodes(run)[0] for run in runs()}
+    first = {run.name: nodes[0] for run in runs() if (nodes := _trial_nodes(run))}
     assert set(first.values()) == {cluster.head_id, cluster.worker_id}  # both nodes used
     lost = on_worker_with_a_checkpoint()
     cluster.kill_worker()
