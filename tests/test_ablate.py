@@ -114,10 +114,10 @@ def test_smoke_study_is_killed_and_resumed_to_completion(tmp_path):
         time.sleep(0.2)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    logged = 0  # env steps both trials had logged at the kill: less than 2 x 2400 if mid-study
-    for progress in tune_dir.glob(f"*/{R.PROGRESS_FILE}"):
-        with open(progress) as f:
-            logged += max((int(float(r[R.ENV_STEPS])) for r in csv.DictReader(f)), default=0)
+    # env steps both trials had evaluated at the kill (our own files: Tune's progress.csv
+    # is flushed later): less than 2 x 2400 if the kill landed mid-study
+    logged = sum(max((e["env_steps"] for e in R.read_json(run / R.EVAL_FILE) or []),
+                     default=0) for run in (tmp_path / "study" / R.TRIALS_DIR).iterdir())
     assert 0 < logged < 2 * 2400, "kill should land mid-study"
     out = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=400)
     assert out.returncode == 0, out.stderr[-2000:]
