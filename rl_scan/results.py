@@ -118,6 +118,12 @@ def record_nodes(folder: Path, iteration: int, nodes: dict[str, Any] | None) -> 
         write_json(path, [*entries, {"from_iteration": iteration, **nodes}])
 
 
+def jsonable(data: Any) -> Any:
+    """``data`` as plain JSON values: numpy numbers and arrays as lists, other objects as text."""
+    return json.loads(json.dumps(data, default=lambda o: o.tolist() if hasattr(o, "tolist")
+                                 else str(o)))
+
+
 def write_json(path: Path, data: Any) -> None:
     """JSON with NaN and numpy numbers written as floats."""
     Path(path).write_text(json.dumps(data, indent=1, default=float))

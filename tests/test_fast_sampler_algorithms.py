@@ -103,8 +103,9 @@ def test_evaluation_and_checkpoints_on_the_fast_sampler(ray_session, tmp_path):
 
 
 def test_meta_poca_sets_tasks_on_the_fast_sampler_worlds(ray_session):
-    algo = meta_poca_config({"max_steps": 8}, tasks=1, episodes=2, task_pool=5,
-                            num_envs_per_env_runner=2).build_algo()
+    algo = meta_poca_config({"max_steps": 8}, tasks=1, support_steps=16, query_steps=16,
+                            task_pool=5, num_envs_per_env_runner=2, train_batch_size=64,
+                            minibatch_size=32).build_algo()
     runner = algo.env_runner
     assert isinstance(runner, FastEnvRunner)
     set_task(runner, "train:3")

@@ -1,4 +1,5 @@
-"""MetaPOCA (MAML over POCA): inner step math, meta gradients, both orders, 2.60 bug fix.
+"""MetaPOCA (first-order MAML-PPO over POCA): the inner update is POCA's own, the query
+gradient is the one at theta + delta, the outer loop uses every sampled step.
 
 Learners are built standalone (no Ray) on real episodes of the scanning env.
 """
@@ -6,7 +7,10 @@ Learners are built standalone (no Ray) on real episodes of the scanning env.
 from __future__ import annotations
 
 import copy
+import math
+import random
 
+import numpy as np
 import pytest
 import torch
 from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
@@ -14,203 +18,232 @@ from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
 from rl_scan.algorithms.maml import meta_poca_config
 from rl_scan.algorithms.maml.meta_poca import set_task
 from rl_scan.algorithms.poca.modules import CRITIC_ID
+from rl_scan.algorithms.poca.poca import poca_config
 from rl_scan.config import ConfigError
 
-LR = 1e-3
+ENV = {"max_steps": 12}
+TRAINING = dict(num_envs_per_env_runner=2, train_batch_size=64, minibatch_size=16,
+                num_epochs=2, lr=1e-3, seed=0)
 
 
-def _setup(order: int, inner_steps: int = 1, meta_epochs: int = 1):
-    config = meta_poca_config({"max_steps": 12}, tasks=2, episodes=1, inner_steps=inner_steps,
-                              inner_lr=LR, order=order, meta_epochs=meta_epochs, task_pool=5,
-                              num_envs_per_env_runner=1, seed=0)
+def _setup(**meta):
+    config = meta_poca_config(ENV, **{"tasks": 2, "support_steps": 24, "query_steps": 24,
+                                      "task_pool": 5, **meta}, **TRAINING)
     runner = MultiAgentEnvRunner(config=config)
     learner = config.build_learner(env=None, spaces=runner.get_spaces())
     return config, runner, learner
 
 
-def _episodes(runner, scenario: str):
+def _sample(runner, scenario: str, steps: int = 24) -> list:
     set_task(runner, scenario)
-    return runner.sample(num_episodes=1)
+    return runner.sample(num_timesteps=steps, force_reset=True)
 
 
-def _params(learner):
-    return {mid: {n: p.detach().clone() for n, p in learner.module[mid].named_parameters()}
-            for mid in learner.module.keys()}
+def _state(learner) -> dict:
+    return {k: t.detach().clone() for k, t in learner.float_state().items()}
 
 
-def _support_gradients(learner, support):
-    """POCA's support-loss gradient at the meta parameters, per module (reference)."""
-    inner = learner.inner
-    params = {mid: {n: p.detach().clone().requires_grad_() for n, p in ps.items()}
-              for mid, ps in _params(learner).items()}
-    batch = inner._learner_connector(rl_module=learner.module, batch={},
-                                     episodes=copy.deepcopy(support), shared_data={})
-    batch = {m: b for m, b in batch.items() if m in learner.module.keys()}
-    fwd = inner._make_functional_call(params, batch)
-    loss = sum(inner.compute_losses(fwd_out=fwd, batch=batch).values())
-    flat = [(m, n) for m, ps in params.items() for n in ps]
-    grads = torch.autograd.grad(loss, [params[m][n] for m, n in flat], allow_unused=True)
-    return {(m, n): g for (m, n), g in zip(flat, grads)}
+def _seeded(seed: int = 0) -> None:
+    """Same minibatch shuffles in two learners' updates."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
 
 
-def test_first_order_inner_step_is_one_adam_step_and_tasks_adapt_differently():
-    _, runner, learner = _setup(order=1)
-    theta = _params(learner)
-    support_a = _episodes(runner, "train:0")
-    support_b = _episodes(runner, "train:1")
-    grads = _support_gradients(learner, support_a)
-    adapted_a = learner.adapt(support_a)
-    adapted_b = learner.adapt(support_b)
-    # Adam's first step is lr * g / (|g| + eps): lr * sign(g) wherever |g| >> eps
-    for (mid, name), g in grads.items():
-        if g is None:
-            continue
-        step = theta[mid][name] - adapted_a[mid][name]
-        big = g.abs() > 1e-4
-        torch.testing.assert_close(step[big], LR * torch.sign(g[big]), rtol=1e-3, atol=1e-7)
-    # the meta parameters themselves are untouched, and two scenarios adapt differently
-    for mid, ps in _params(learner).items():
-        for n, p in ps.items():
-            assert torch.equal(p, theta[mid][n])
-    for mid in ("wheeled", "quad", CRITIC_ID):
-        assert any(not torch.allclose(adapted_a[mid][n], adapted_b[mid][n])
-                   for n in adapted_a[mid]), mid
+def test_the_inner_update_is_an_ordinary_poca_update_and_leaves_theta_as_it_was():
+    _, runner, learner = _setup()
+    support = _sample(runner, "train:0")
+    # one outer-style update first, so the meta optimizer has state to keep
+    learner.update(episodes=copy.deepcopy(support), **learner.update_kwargs({}))
+    theta = _state(learner)
+    meta_adam = {n: copy.deepcopy(o.state_dict()) for n, o in learner._named_optimizers.items()}
+
+    _seeded()
+    delta, adapted, _ = learner.adapt(support, {})
+    # a standalone POCA learner from the same weights, with a new Adam, on the same batch
+    plain_config = poca_config(ENV, **TRAINING)
+    plain = plain_config.build_learner(env=None, spaces=runner.get_spaces())
+    for mid in learner.module.keys():
+        plain.module[mid].load_state_dict(learner.module[mid].state_dict())
+    _seeded()
+    plain.update(episodes=copy.deepcopy(support), timesteps={},
+                 num_epochs=plain_config.num_epochs, minibatch_size=plain_config.minibatch_size,
+                 shuffle_batch_per_epoch=plain_config.shuffle_batch_per_epoch)
+    reached = {(mid, n): t.detach() for mid in plain.module.keys()
+               for n, t in plain.module[mid].state_dict().items() if t.is_floating_point()}
+    moved = 0
+    for key, d in delta.items():
+        torch.testing.assert_close(theta[key] + d, reached[key], rtol=1e-5, atol=1e-6)
+        moved += bool(d.abs().max() > 0)
+    assert moved > 30  # actors and critic alike
+    for mid, sd in adapted.items():
+        for n, t in sd.items():
+            torch.testing.assert_close(t, reached[(mid, n)], rtol=1e-5, atol=1e-6)
+    # the learner is back at theta with the meta optimizer's moments
+    for key, t in _state(learner).items():
+        assert torch.equal(t, theta[key]), key
+    for name, opt in learner._named_optimizers.items():
+        for p, st in opt.state_dict()["state"].items():
+            for k, v in st.items():
+                assert torch.equal(v, meta_adam[name]["state"][p][k]), (name, k)
 
 
-def test_second_order_inner_step_is_sgd_and_gradients_map_to_their_own_modules():
-    """Fails without the 2.60 workaround: the stock compute_gradients gives every module
-    the first module's gradients (different shapes: error; same shapes: silent)."""
-    _, runner, learner = _setup(order=2)
-    theta = _params(learner)
-    support = _episodes(runner, "train:0")
-    grads = _support_gradients(learner, support)
-    adapted = learner.adapt(support)
-    checked = 0
-    for (mid, name), g in grads.items():
-        if g is None:
-            continue
-        torch.testing.assert_close(adapted[mid][name], theta[mid][name] - LR * g,
+def _params(learner) -> dict:
+    return {(mid, n): p for mid in learner.module.keys()
+            for n, p in learner.module[mid].named_parameters()}
+
+
+def test_a_step_inside_shifted_is_the_step_taken_at_theta_plus_delta():
+    """The first-order MAML step: the gradient at theta + delta, applied to theta."""
+    config, runner, learner = _setup()
+    delta, _, _ = learner.adapt(_sample(runner, "train:0"), {})
+    query = _sample(runner, "train:0")
+    theta = _state(learner)
+    # a second learner with the same weights moved to theta + delta (return statistics
+    # frozen there too): what functional_call at theta + delta would compute
+    loaded = config.build_learner(env=None, spaces=runner.get_spaces())
+    for mid in learner.module.keys():
+        loaded.module[mid].load_state_dict(learner.module[mid].state_dict())
+    with torch.no_grad():
+        for key, p in _params(loaded).items():
+            p.add_(delta[key])
+    loaded.module[CRITIC_ID].return_stats_frozen = True
+
+    _seeded()
+    with learner.shifted(delta):
+        learner.update(episodes=copy.deepcopy(query), **learner.update_kwargs({}))
+    _seeded()
+    loaded.update(episodes=copy.deepcopy(query), **loaded.update_kwargs({}))
+    after = _params(loaded)
+    moved = 0
+    for key, p in _params(learner).items():
+        step = p.detach() - theta[key]
+        torch.testing.assert_close(step, after[key].detach() - theta[key] - delta[key],
                                    rtol=1e-4, atol=1e-6)
-        checked += 1
-    assert checked > 30  # every module's parameters, critic included
+        moved += bool(step.abs().max() > 0)
+    assert moved > 30
+    assert not learner.module[CRITIC_ID].return_stats_frozen  # only inside the block
 
 
-@pytest.mark.parametrize("order", [1, 2])
-def test_meta_update_moves_actors_and_critic(order):
-    _, runner, learner = _setup(order=order, inner_steps=2)
-    theta = _params(learner)
+def test_two_scenarios_adapt_to_different_policies():
+    _, runner, learner = _setup()
+    delta_a, adapted_a, _ = learner.adapt(_sample(runner, "train:0"), {})
+    delta_b, adapted_b, _ = learner.adapt(_sample(runner, "train:3"), {})
+    probe = _sample(runner, "train:0")  # the same observations for both adapted teams
+    for mid in ("wheeled", "quad"):
+        module = copy.deepcopy(learner.module[mid])
+        obs = torch.as_tensor(np.concatenate([
+            np.asarray(e.agent_episodes[a].get_observations()[:-1])
+            for e in probe for a in e.agent_ids if e.agent_episodes[a].module_id == mid]))
+        means = []
+        for adapted in (adapted_a, adapted_b):
+            module.load_state_dict(adapted[mid])
+            with torch.no_grad():
+                means.append(module.forward_inference({"obs": obs})["action_dist_inputs"])
+        theta_out = learner.module[mid].forward_inference({"obs": obs})["action_dist_inputs"]
+        shift_a = (means[0] - theta_out).abs().mean()
+        assert (means[0] - means[1]).abs().mean() > 0.1 * shift_a > 0, mid
+
+
+def _module_rows(episodes, module_id: str) -> int:
+    """Rows of a module in POCA's batch: each agent's steps plus the one bootstrap step
+    RLlib's AddOneTsToEpisodesAndTruncate adds per episode chunk."""
+    return sum(len(e.agent_episodes[a]) + 1 for e in episodes for a in e.agent_ids
+               if e.agent_episodes[a].module_id == module_id)
+
+
+def test_the_outer_update_takes_epochs_times_minibatches_steps_on_every_batch(monkeypatch):
+    config, runner, learner = _setup()
+    from rl_scan.algorithms.maml.meta_poca import MetaPOCA, Task
+
     tasks = []
     for scenario in ("train:0", "train:1"):
-        set_task(runner, scenario)
-        support = runner.sample(num_episodes=1)
-        adapted = learner.adapt(support)
-        for mid, sd in learner.adapted_state(adapted).items():
-            runner.module[mid].load_state_dict(sd)
-        query = runner.sample(num_episodes=1)
-        tasks.append({"support": support, "query": query, "adapted": adapted})
-    results = learner.meta_update(tasks)
-    assert results["meta/grad_norm"] > 0
-    for mid in ("wheeled", "quad", CRITIC_ID):
-        moved = [n for n, p in learner.module[mid].named_parameters()
-                 if not torch.equal(p.detach(), theta[mid][n])]
-        assert len(moved) == len(theta[mid]), (mid, len(moved), len(theta[mid]))
+        support = _sample(runner, scenario)
+        delta, adapted, _ = learner.adapt(support, {})
+        tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
+    steps = []
+    real = type(learner).apply_gradients
+    monkeypatch.setattr(type(learner), "apply_gradients",
+                        lambda self, grads: (steps.append(1), real(self, grads))[1])
+
+    class Stub:  # the algorithm's outer update reads only its config and timesteps
+        def _timesteps(self):
+            return {}
+
+    Stub.config = config
+    MetaPOCA._outer_update(Stub(), learner, tasks)
+
+    def minibatches(episodes) -> int:
+        rows = max(_module_rows(episodes, mid) for mid in ("wheeled", "quad"))
+        return math.ceil(config.num_epochs * rows / config.minibatch_size)
+
+    expected = minibatches([e for t in tasks for e in t.support]) + sum(
+        minibatches(t.query) for t in tasks)
+    assert len(steps) == expected > 2 * config.num_epochs
 
 
-def _query_gradient_reference(learner, support, query, adapted):
-    """POCA's query-loss gradient at ``adapted``, keyed by (module, parameter name)."""
-    from rl_scan.algorithms.maml.learners import QUERY, poca_functional_forward, poca_losses
+def test_a_meta_iteration_learns_from_every_step_it_charges(ray_session):
+    """Env steps charged = env steps in the support and query batches = tasks * (S + Q)."""
+    config = meta_poca_config(ENV, tasks=2, support_steps=24, query_steps=12, task_pool=5,
+                              **TRAINING)
+    algo = config.build_algo()
+    sampled: list = []
+    runner = algo.env_runner
+    real = runner.sample
 
-    params = {mid: {n: p.clone().requires_grad_() for n, p in ps.items()}
-              for mid, ps in adapted.items()}
-    batch = learner._learner_connector(rl_module=learner.module, batch={},
-                                       episodes=copy.deepcopy(query), shared_data={})
-    batch = {m: b for m, b in batch.items() if m in learner.module.keys()}
-    steps = learner.module[CRITIC_ID].minibatches[QUERY].steps
-    losses, _ = poca_losses(learner.module, learner.config,
-                            poca_functional_forward(learner.module, params, batch, QUERY,
-                                                    steps), batch, QUERY, steps)
-    sum(losses.values()).backward()
-    return {(m, n): p.grad for m, ps in params.items() for n, p in ps.items()}
+    def recording(**kwargs):
+        episodes = real(**kwargs)
+        sampled.append(sum(e.env_steps() for e in episodes))
+        return episodes
 
-
-def test_first_order_meta_gradient_is_the_query_gradient_at_the_adapted_parameters():
-    _, runner, learner = _setup(order=1)
-    support = _episodes(runner, "train:2")
-    adapted = learner.adapt(support)
-    for mid, sd in learner.adapted_state(adapted).items():
-        runner.module[mid].load_state_dict(sd)
-    query = runner.sample(num_episodes=1)
-    reference = _query_gradient_reference(learner, support, query, adapted)
-    # capture the gradient the meta step applies
-    applied = {}
-    original = learner.apply_gradients
-
-    def spy(gradients):
-        applied.update({p: g.clone() for p, g in gradients.items()})
-        original(gradients)
-
-    learner.apply_gradients = spy
-    learner.config._is_frozen = False
-    learner.meta_update([{"support": support, "query": query, "adapted": adapted}])
-    real = {p: (mid, n) for mid in learner.module.keys()
-            for n, p in learner.module[mid].named_parameters()}
-    for p, g in applied.items():
-        ref = reference[real[p]]
-        torch.testing.assert_close(g, ref if ref is not None else torch.zeros_like(g),
-                                   rtol=1e-4, atol=1e-6)
+    runner.sample = recording
+    result = algo.train()
+    algo.stop()
+    charged = result["env_runners"]["num_env_steps_sampled_lifetime"]
+    assert charged == sum(sampled) == 2 * (24 + 12)
+    assert sampled == [24, 12, 24, 12]
+    assert result["meta/delta_norm"] > 0
 
 
-def test_later_meta_epochs_re_adapt_from_the_updated_meta_parameters():
-    """Epoch 2's meta gradient is the query gradient at adapt(theta_1, support), where
-    theta_1 are the meta parameters after epoch 1's step (not the first adaptation)."""
-    _, runner, learner = _setup(order=1, meta_epochs=2)
-    support = _episodes(runner, "train:2")
-    adapted = learner.adapt(support)
-    for mid, sd in learner.adapted_state(adapted).items():
-        runner.module[mid].load_state_dict(sd)
-    query = runner.sample(num_episodes=1)
-    calls, original = [], learner.apply_gradients
+def test_reptile_moves_theta_by_the_mean_task_delta():
+    config, runner, learner = _setup(outer="reptile", reptile_lr=0.5)
+    from rl_scan.algorithms.maml.meta_poca import MetaPOCA, Task
 
-    def spy(gradients):  # the parameters before each step, and the step's gradient
-        calls.append((_params(learner), {p: g.clone() for p, g in gradients.items()}))
-        original(gradients)
+    theta = _state(learner)
+    tasks = []
+    for scenario in ("train:0", "train:1"):
+        support = _sample(runner, scenario)
+        delta, _, _ = learner.adapt(support, {})
+        tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
+    _seeded()
+    further = [learner.adapt(t.query, {}, 1, start=t.delta)[0] for t in tasks]
 
-    learner.apply_gradients = spy
-    learner.meta_update([{"support": support, "query": query, "adapted": adapted}])
-    assert len(calls) == 2
-    theta_1, applied = calls[1]
-    theta_0 = calls[0][0]
-    assert any(not torch.equal(theta_1[m][n], theta_0[m][n])  # the first step moved them
-               for m in theta_0 for n in theta_0[m])
-    with torch.no_grad():  # rebuild theta_1 and adapt from it as the learner should have
-        for mid in learner.module.keys():
-            for n, p in learner.module[mid].named_parameters():
-                p.copy_(theta_1[mid][n])
-    reference = _query_gradient_reference(learner, support, query, learner.adapt(support))
-    stale = _query_gradient_reference(learner, support, query, adapted)
-    real = {p: (mid, n) for mid in learner.module.keys()
-            for n, p in learner.module[mid].named_parameters()}
-    differs = 0
-    for p, g in applied.items():
-        key = real[p]
-        ref = reference[key] if reference[key] is not None else torch.zeros_like(g)
-        torch.testing.assert_close(g, ref, rtol=1e-4, atol=1e-6)
-        if stale[key] is not None and not torch.allclose(stale[key], ref):
-            differs += 1
-    assert differs > 0  # re-adapting matters: the stale adaptation gives other gradients
+    class Stub:
+        def _timesteps(self):
+            return {}
+
+    Stub.config = config
+    _seeded()
+    MetaPOCA._outer_update(Stub(), learner, tasks)
+    for key, t in _state(learner).items():
+        expected = theta[key] + 0.5 * (further[0][key] + further[1][key]) / 2
+        torch.testing.assert_close(t, expected, rtol=1e-5, atol=1e-6)
 
 
-def test_bad_meta_settings_fail_before_building():
-    with pytest.raises(ConfigError, match="meta.order"):
-        meta_poca_config({}, tasks=2, episodes=1, order=3).validate()
-    with pytest.raises(ConfigError, match="meta.tasks"):
-        meta_poca_config({}, tasks=0, episodes=1).validate()
-    with pytest.raises(ConfigError, match="meta.epochs"):
-        meta_poca_config({}, tasks=1, episodes=1, meta_epochs=0).validate()
-    with pytest.raises(ConfigError, match=r"meta.tasks=6 is invalid: allowed .*5"):
-        meta_poca_config({}, tasks=6, episodes=1, task_pool=5).validate()
-    with pytest.raises(ConfigError, match="num_env_runners"):
-        meta_poca_config({}, tasks=1, episodes=1, num_env_runners=1).validate()
+@pytest.mark.parametrize("meta, message", [
+    (dict(inner_updates=0), r"meta.inner_updates=0 is invalid"),
+    (dict(tasks=0), r"meta.tasks=0 is invalid"),
+    (dict(tasks=6, task_pool=5), r"meta.tasks=6 is invalid: allowed .*5"),
+    (dict(support_steps=25), r"meta.support_steps=25 is invalid: allowed a multiple of "
+                             r"num_envs_per_env_runner=2"),
+    (dict(query_steps=1), r"meta.query_steps=1 is invalid"),
+    (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'reptile'\]"),
+    (dict(num_env_runners=1), r"num_env_runners=1"),
+])
+def test_bad_meta_settings_fail_before_building(meta, message):
+    with pytest.raises(ConfigError, match=message):
+        meta_poca_config(ENV, **{"tasks": 2, "support_steps": 24, "query_steps": 24,
+                                 "task_pool": 5, **TRAINING, **meta}).validate()
 
 
 def test_a_restored_run_draws_the_tasks_the_uninterrupted_run_draws(ray_session, tmp_path,
@@ -227,8 +260,8 @@ def test_a_restored_run_draws_the_tasks_the_uninterrupted_run_draws(ray_session,
         real(env_runner, scenario)
 
     monkeypatch.setattr(meta_poca, "set_task", recording)
-    config = meta_poca_config({"max_steps": 12}, tasks=3, episodes=1, meta_epochs=1,
-                              task_pool=50, num_envs_per_env_runner=1, seed=4)
+    config = meta_poca_config(ENV, tasks=3, support_steps=12, query_steps=12, task_pool=50,
+                              **{**TRAINING, "seed": 4})
 
     def second_iteration_tasks(algo) -> list[str]:
         drawn.clear()

@@ -284,3 +284,25 @@ def test_default_run_names_are_folder_safe():
     assert scenario_label("train:*") == "train-any"
     assert scenario_label("tests/data/one_box.yaml") == "one_box"
     assert scenario_label("ablation") == "ablation"
+
+
+def test_a_trial_resumed_before_its_final_checkpoint_finds_it_beside(tmp_path):
+    """Tune's saved state may name checkpoint 1 while the trial already wrote its final one
+    (the driver was killed within Tune's ~10 s state-save period): that one is reported."""
+    from ray import tune
+
+    from rl_scan.tuning.driver import FINAL_RESULT, final_checkpoint
+
+    def write(index: int, steps: int, final: bool) -> Path:
+        folder = tmp_path / f"checkpoint_{index:06d}"
+        folder.mkdir()
+        R.write_json(folder / R.CHECKPOINT_STEPS, {"env_steps": steps, R.ITERATION: index + 1,
+                                                   **({FINAL_RESULT: {}} if final else {})})
+        return folder
+
+    named = tune.Checkpoint.from_directory(str(write(0, 400, False)))
+    write(1, 800, False)
+    assert final_checkpoint(named, 1200) is None  # the run has not ended: train on
+    last = write(2, 1200, True)
+    assert final_checkpoint(named, 1200) == last
+    assert final_checkpoint(named, 1600) is None  # a longer budget than it trained to

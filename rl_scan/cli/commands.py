@@ -298,13 +298,15 @@ def preset_overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def train_cmd(args: argparse.Namespace) -> int:
-    from rl_scan.cli.env_args import env_mapping_from_args
+    from rl_scan.cli.env_args import env_mapping_from_args, parse_set
     from rl_scan.tuning.driver import make_run_spec
     from rl_scan.tuning.launch import train_spec
 
     overrides = preset_overrides_from_args(args)
+    meta = parse_set(getattr(args, "meta", []), "--meta", "outer=reptile")
     spec = make_run_spec(args.algo, env_mapping_from_args(args), args.preset, seed=args.seed,
-                         preset_overrides=overrides, init_from=getattr(args, "init_from", None))
+                         preset_overrides=overrides, init_from=getattr(args, "init_from", None),
+                         settings_overrides=meta or None)
     run_dir = train_spec(spec, results_dir=args.results, name=args.name, address=args.address,
                          resume=args.resume)
     print(f"done: {run_dir}")

@@ -26,12 +26,13 @@ def parse_team(text: str) -> dict[str, int]:
     return {"wheeled": w, "quad": q}
 
 
-def parse_set(items: list[str]) -> dict[str, Any]:
+def parse_set(items: list[str], flag: str = "--set", example: str = "max_steps=300"
+              ) -> dict[str, Any]:
     """['quad.sensor_range=3.0', 'dt=1'] -> nested mapping with YAML-typed values."""
     out: dict[str, Any] = {}
     for item in items:
         if "=" not in item:
-            raise ConfigError(f"--set {item!r} is invalid: allowed KEY=VALUE, e.g. max_steps=300")
+            raise ConfigError(f"{flag} {item!r} is invalid: allowed KEY=VALUE, e.g. {example}")
         key, value = item.split("=", 1)
         node = out
         parts = key.strip().split(".")

@@ -169,13 +169,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     mt = sub.add_parser(
         "meta-train", formatter_class=fmt, help="meta-train MetaPOCA (meta-MRSS) through Tune",
-        description="Meta-train POCA with MAML (the paper's Algorithm 1): per meta-iteration "
-                    "the preset's meta_tasks train scenarios, meta_episodes support episodes "
-                    "each, inner_steps adaptation steps (first order, inner Adam), as many "
-                    "query episodes, one meta update. Same run folder, --resume and "
+        description="Meta-train POCA with first-order MAML (the paper's Algorithm 1): per "
+                    "meta-iteration `tasks` train scenarios; for each, support_steps env "
+                    "steps with the meta policy, one ordinary POCA update on them (the "
+                    "adaptation), query_steps env steps with the adapted policy; then the "
+                    "outer update learns from every step (support at the meta weights, "
+                    "query at the adapted ones). Same run folder, --resume and "
                     "checkpoints as `train`; --scenario is what evaluation uses.")
     _add_run_args(mt, "meta-poca_SCENARIO_PRESET_sSEED")
     mt.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
+    mt.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
+                    help="a meta setting over the preset's: tasks, support_steps, "
+                         "query_steps, inner_updates, outer (maml or reptile), reptile_lr "
+                         "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
+    mt.add_argument("--init-from", default=None, metavar="CHECKPOINT",
+                    help="warm start from this checkpoint's (or run folder's) weights, "
+                         "e.g. a domain-randomisation run")
     add_env_args(mt)
     mt.set_defaults(func=commands.train_cmd, algo="meta-poca")
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shutil
 import subprocess
 import tempfile
 import time
@@ -95,8 +96,10 @@ def make_run_spec(algo: str, env_config: dict[str, Any] | None = None,
                   preset_name: str = "smoke", *, seed: int = 0,
                   preset_overrides: dict[str, Any] | None = None,
                   init_from: str | Path | None = None,
-                  algo_kwargs: dict[str, Any] | None = None) -> RunSpec:
-    """Validate a run's inputs once (the preset's env overrides under the user's)."""
+                  algo_kwargs: dict[str, Any] | None = None,
+                  settings_overrides: dict[str, Any] | None = None) -> RunSpec:
+    """Validate a run's inputs once (the preset's env overrides under the user's, the
+    preset's algorithm settings under ``settings_overrides``)."""
     entry = get_algorithm(algo)
     preset = get_preset(preset_name, preset_overrides)
     if entry.local_sampling:  # it samples in its own process with fixed settings
@@ -105,12 +108,18 @@ def make_run_spec(algo: str, env_config: dict[str, Any] | None = None,
                 fail(name, True, f"False for {algo} (it samples in its own process and "
                                  "meta-updates with fixed settings)")
         preset = dataclasses.replace(preset, overlap_sampling=False, decay_schedules=False)
+    settings = entry.make_settings(preset_name, settings_overrides)
+    per_iteration = getattr(settings, "env_steps_per_iteration", lambda: 1)()
+    if preset.total_env_steps % per_iteration:  # it would train past the budget
+        fail("total_env_steps", preset.total_env_steps,
+             f"a multiple of {algo}'s {per_iteration:,} env steps per iteration, so that "
+             "every method gets the same budget")
     env = make_env_config(deep_merge(preset.env_overrides, dict(env_config or {})))
     if init_from is not None:
         from rl_scan.algorithms.rollout import resolve_checkpoint
 
         init_from = str(resolve_checkpoint(init_from))
-    return RunSpec(algo, env, preset_name, preset, seed, entry.make_settings(preset_name),
+    return RunSpec(algo, env, preset_name, preset, seed, settings,
                    dict(algo_kwargs or {}), init_from)
 
 
@@ -134,16 +143,24 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
         raise NonFiniteLossError(f"{stopped.read_text()} (not retried: it would recur "
                                  "from the same checkpoint)")
     preset = spec.preset
-    torch.set_num_threads(preset.learner_cpus)  # as many threads as reserved CPUs
-    algorithm = spec.algorithm_config().build_algo()
     checkpoint = tune.get_checkpoint()
     if checkpoint is not None:
         with checkpoint.as_directory() as folder:
-            algorithm.restore_from_path(folder)
             steps = (R.read_json(Path(folder) / R.CHECKPOINT_STEPS) or {}).get("env_steps", 0)
         if steps >= preset.total_env_steps:  # restored at its end: nothing left to train
-            algorithm.stop()  # (a study resumed after its driver died may do this)
+            return  # (a study resumed after its driver died may do this)
+        final = final_checkpoint(checkpoint, preset.total_env_steps)
+        if final is not None:  # its last report again (a study records its metric once)
+            with tempfile.TemporaryDirectory() as tmp:  # Tune may persist it under its name
+                shutil.copytree(final, tmp, dirs_exist_ok=True)
+                tune.report(R.read_json(final / R.CHECKPOINT_STEPS)[FINAL_RESULT],
+                            checkpoint=tune.Checkpoint.from_directory(tmp))
             return
+    torch.set_num_threads(preset.learner_cpus)  # as many threads as reserved CPUs
+    algorithm = spec.algorithm_config().build_algo()
+    if checkpoint is not None:
+        with checkpoint.as_directory() as folder:
+            algorithm.restore_from_path(folder)
     nodes = placement(algorithm)
     try:
         while True:
@@ -159,7 +176,8 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
                 with tempfile.TemporaryDirectory() as tmp:
                     algorithm.save_to_path(tmp)
                     R.write_json(Path(tmp) / R.CHECKPOINT_STEPS,
-                                 {"env_steps": int(result[R.ENV_STEPS]), R.ITERATION: it})
+                                 {"env_steps": int(result[R.ENV_STEPS]), R.ITERATION: it,
+                                  **({FINAL_RESULT: R.jsonable(result)} if done else {})})
                     tune.report(result, checkpoint=tune.Checkpoint.from_directory(tmp))
             else:
                 tune.report(result)
@@ -170,6 +188,29 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
         raise
     finally:
         algorithm.stop()
+
+
+FINAL_RESULT = "final_result"  # in a run's last checkpoint: the result reported with it
+
+
+def final_checkpoint(checkpoint, total_env_steps: int) -> Path | None:
+    """This trial's last checkpoint if it already wrote it, though Tune restores an earlier one.
+
+    Tune saves its experiment state every ~10 s: a driver killed just after a trial's last
+    report resumes that trial from the checkpoint its saved state names, while the trial's
+    folder (local or shared file system) holds the final one beside it. Reporting the final
+    one again finishes the trial with the result it had, instead of re-training its last
+    iterations (whose new results would differ from those a study already recorded).
+    """
+    import pyarrow.fs
+
+    if not isinstance(checkpoint.filesystem, pyarrow.fs.LocalFileSystem):
+        return None  # cloud storage: Tune's own checkpoint is the one we have
+    for folder in sorted(Path(checkpoint.path).parent.glob("checkpoint_*"), reverse=True):
+        saved = R.read_json(folder / R.CHECKPOINT_STEPS) or {}
+        if saved.get("env_steps", 0) >= total_env_steps and FINAL_RESULT in saved:
+            return folder
+    return None
 
 
 def placement(algorithm) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""meta-MRSS: MAML over POCA (``MetaPOCA``) on RLlib's TorchMetaLearner API.
+"""meta-MRSS: first-order MAML-PPO over POCA (``MetaPOCA``) on POCA's own learner.
 
 The algorithm classes load on first use, so that ``settings`` (read by the algorithm
 registry, and so by ``rl-scan --help``) imports neither Ray nor torch.

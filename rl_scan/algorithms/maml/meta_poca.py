@@ -1,80 +1,84 @@
-"""meta-MRSS (the paper's Algorithm 1): MAML over POCA as an RLlib algorithm.
+"""meta-MRSS (the paper's Algorithm 1) as first-order MAML-PPO over POCA, on all its data.
 
-Per meta-iteration: sample ``meta_tasks`` scenarios from the train set; per task, sample
-``meta_episodes`` support episodes with the meta policy, adapt (``inner_steps`` inner
-steps, first order with Adam by default), sample as many query episodes with the adapted
-policy; then ``meta_epochs`` meta updates over the task batch (``learners.py``).
+Per meta-iteration, for each of ``meta_tasks`` distinct train scenarios (task i):
+  1. sample ``support_steps`` env steps with the meta policy theta (fresh episodes);
+  2. inner loop: ``inner_updates`` ordinary POCA updates on that support batch (the
+     preset's epochs and minibatches, Adam at POCA's lr from a fresh state, actors and
+     critic) give theta'_i and delta_i = theta'_i - theta; the learner returns to theta;
+  3. sample ``query_steps`` env steps with theta'_i.
+Then the outer update (``outer``):
+  * ``maml``: one ordinary POCA update at theta on every task's support batch (the
+    gradient DR would take from the same data), then per task one on its query batch at
+    theta + delta_i (advantages from the adapted critic): each minibatch is one meta-Adam
+    step with the first-order MAML gradient, clipped against the policy that sampled it;
+  * ``reptile``: theta += reptile_lr * mean_i(theta''_i - theta), theta''_i being theta'_i
+    after one more POCA update on the task's query batch.
+Every sampled env step is learned from, and counted once (the budget is exact).
 
-    config = meta_poca_config({"max_steps": 200}, tasks=4, episodes=2)
+    config = meta_poca_config({"max_steps": 200}, tasks=4, support_steps=800, query_steps=800)
     algo = config.build_algo(); algo.train(); algo.save_to_path("ckpt")
 
 Sampling runs on the local env runner (``num_env_runners=0``): tasks are set per env and
-adapted weights are loaded between support and query sampling.
+adapted actors are loaded between support and query sampling.
 """
 
 from __future__ import annotations
 
+import copy
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
-from ray.rllib.algorithms.algorithm_config import DifferentiableAlgorithmConfig, NotProvided
+from ray.rllib.algorithms.algorithm_config import NotProvided
 from ray.rllib.utils.annotations import override
 from ray.rllib.utils.metrics import (
     ENV_RUNNER_RESULTS,
     ENV_RUNNER_SAMPLING_TIMER,
     LEARNER_RESULTS,
     LEARNER_UPDATE_TIMER,
+    NUM_ENV_STEPS_SAMPLED_LIFETIME,
     TIMERS,
 )
 
 from rl_scan.algorithms.callbacks import episode_summary
-from rl_scan.algorithms.maml.learners import (
-    MetaPOCALearner,
-    MultiAgentDifferentiableLearnerConfig,
-    POCADifferentiableLearner,
-)
+from rl_scan.algorithms.maml.learners import Key, MetaPOCALearner
+from rl_scan.algorithms.maml.settings import OUTER_RULES
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
-from rl_scan.config import ConfigError, check_range
+from rl_scan.config import ConfigError, check_range, fail
 from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.scenarios import N_TRAIN
 from rl_scan.results import META_AFTER, META_BEFORE
 
+META_DELTA_NORM = "meta/delta_norm"  # mean over tasks of ||theta'_i - theta|| (parameters)
 
-class MetaPOCAConfig(POCAConfig, DifferentiableAlgorithmConfig):
-    """POCAConfig plus the meta-learning settings (paper: I=100, tau=10, K=20)."""
+
+class MetaPOCAConfig(POCAConfig):
+    """POCAConfig plus the meta-learning settings (``meta()``; paper: tau=10, K=20)."""
 
     def __init__(self, algo_class=None):
         super().__init__(algo_class=algo_class or MetaPOCA)
         self.meta_tasks = 10
-        self.meta_episodes = 20
-        self.inner_steps = 1
-        self.inner_lr = 3e-4
-        self.meta_order = 1
-        self.meta_epochs = 3
+        self.support_steps = 10_000
+        self.query_steps = 10_000
+        self.inner_updates = 1
+        self.outer_rule = "maml"
+        self.reptile_lr = 1.0
         self.task_pool = N_TRAIN
-        # PopArt rescales the critic's output layer in place whenever its statistics move,
-        # i.e. in every adaptation's connector pass: the meta-parameters would change
-        # outside the meta-step. Off until the meta-learner owns the statistics.
-        self.normalize_returns = False
 
-    def meta(self, *, tasks: int = NotProvided, episodes: int = NotProvided,
-             inner_steps: int = NotProvided, inner_lr: float = NotProvided,
-             order: int = NotProvided, epochs: int = NotProvided,
+    def meta(self, *, tasks: int = NotProvided, support_steps: int = NotProvided,
+             query_steps: int = NotProvided, inner_updates: int = NotProvided,
+             outer: str = NotProvided, reptile_lr: float = NotProvided,
              task_pool: int = NotProvided) -> MetaPOCAConfig:
-        """Meta settings: ``tasks`` per meta-iteration (tau), support/query ``episodes`` per
-        task (K), ``inner_steps`` and ``inner_lr`` of the adaptation, ``order`` 1 (first
-        order, inner Adam) or 2 (second order, inner SGD), ``epochs``: meta steps per
-        meta-iteration on its query episodes (the paper's 3), and ``task_pool``: tasks
-        are drawn from ``train:0`` .. ``train:{task_pool - 1}``."""
-        for name, value in (("meta_tasks", tasks), ("meta_episodes", episodes),
-                            ("inner_steps", inner_steps), ("inner_lr", inner_lr),
-                            ("meta_order", order), ("meta_epochs", epochs),
+        """Meta settings (``MetaSettings`` documents each); ``task_pool``: tasks are drawn
+        from ``train:0`` .. ``train:{task_pool - 1}``."""
+        for name, value in (("meta_tasks", tasks), ("support_steps", support_steps),
+                            ("query_steps", query_steps), ("inner_updates", inner_updates),
+                            ("outer_rule", outer), ("reptile_lr", reptile_lr),
                             ("task_pool", task_pool)):
             if value is not NotProvided:
                 setattr(self, name, value)
-        self.sync_inner_learner_config()
         return self
 
     @override(POCAConfig)
@@ -84,30 +88,25 @@ class MetaPOCAConfig(POCAConfig, DifferentiableAlgorithmConfig):
     @override(POCAConfig)
     def validate(self) -> None:
         check_range("meta.tasks", self.meta_tasks, 1)
-        check_range("meta.episodes", self.meta_episodes, 1)
-        check_range("meta.inner_steps", self.inner_steps, 1)
-        check_range("meta.inner_lr", self.inner_lr, 0.0, lo_open=True)
-        check_range("meta.epochs", self.meta_epochs, 1, 100)
+        check_range("meta.inner_updates", self.inner_updates, 1, 100)
         check_range("meta.task_pool", self.task_pool, 1, N_TRAIN)
         check_range("meta.tasks", self.meta_tasks, 1, self.task_pool)  # distinct tasks
-        if self.meta_order not in (1, 2):
-            raise ConfigError(f"meta.order={self.meta_order!r}: allowed 1 (first order, "
-                              "inner Adam) or 2 (second order, inner SGD)")
+        if self.outer_rule not in OUTER_RULES:
+            fail("meta.outer", self.outer_rule, f"one of {list(OUTER_RULES)}")
+        check_range("meta.reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
+        envs = self.num_envs_per_env_runner
+        for name in ("support_steps", "query_steps"):
+            steps = getattr(self, name)
+            if steps < envs or steps % envs:
+                fail(f"meta.{name}", steps, f"a multiple of num_envs_per_env_runner={envs} "
+                                            "(every env steps alike; nothing is discarded)")
         if self.num_env_runners != 0:
             raise ConfigError(f"num_env_runners={self.num_env_runners}: MetaPOCA samples "
                               "its tasks on the local env runner; allowed: 0")
-        if not isinstance(self.entropy_coeff, (int, float)):
-            raise ConfigError("entropy_coeff: MetaPOCA needs a constant (no schedule)")
-        if not self._is_frozen:
-            self.sync_inner_learner_config()
+        for name in ("entropy_coeff", "lr"):
+            if not isinstance(getattr(self, name), (int, float)):
+                fail(name, getattr(self, name), "a constant for MetaPOCA (no schedule)")
         super().validate()
-
-    def sync_inner_learner_config(self) -> None:
-        """The inner (differentiable) learner's config, from the meta settings."""
-        self.differentiable_learner_configs = [MultiAgentDifferentiableLearnerConfig(
-            POCADifferentiableLearner, is_multi_agent=True, policies=set(self.policies),
-            policy_mapping_fn=self.policy_mapping_fn, lr=self.inner_lr,
-            num_epochs=self.inner_steps, minibatch_size=None, meta_order=self.meta_order)]
 
 
 def set_task(env_runner, scenario: str) -> None:
@@ -117,12 +116,23 @@ def set_task(env_runner, scenario: str) -> None:
 
 
 def mean_coverage(episodes: list) -> float:
+    """Mean final coverage of the finished episodes (chunks cut by sampling have none)."""
     values = [s["coverage"] for s in map(episode_summary, episodes) if s is not None]
     return float(np.mean(values)) if values else float("nan")
 
 
+@dataclass
+class Task:
+    """One task of a meta-iteration: its batches and the inner update's delta."""
+
+    scenario: str
+    support: list
+    query: list
+    delta: dict[Key, torch.Tensor]
+
+
 class MetaPOCA(POCA):
-    """meta-MRSS: first- or second-order MAML over POCA (see the module doc)."""
+    """meta-MRSS: first-order MAML-PPO (or Reptile) over POCA (see the module doc)."""
 
     @classmethod
     @override(POCA)
@@ -141,34 +151,60 @@ class MetaPOCA(POCA):
     def training_step(self) -> None:
         cfg = self.config
         runner = self.env_runner
-        learner = self.learner_group._learner  # num_learners=0: the local learner
+        learner: MetaPOCALearner = self.learner_group._learner  # num_learners=0: local
         actor_ids = [mid for mid in runner.module.keys() if mid != CRITIC_ID]
-        meta_state = {mid: {k: v.clone() for k, v in runner.module[mid].state_dict().items()}
-                      for mid in actor_ids}
-        tasks, before, after = [], [], []
+        meta_actors = {mid: copy.deepcopy(runner.module[mid].state_dict())
+                       for mid in actor_ids}
+        tasks = []
         for scenario in self.meta_tasks_of(self.iteration):
             set_task(runner, scenario)
-            with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
-                self._load_actors(runner, meta_state)
-                support = runner.sample(num_episodes=cfg.meta_episodes)
+            support = self._sample(runner, meta_actors, cfg.support_steps)
             with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-                adapted = learner.adapt(support)
-            with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
-                self._load_actors(runner, learner.adapted_state(adapted))
-                query = runner.sample(num_episodes=cfg.meta_episodes)
-            tasks.append({"support": support, "query": query, "adapted": adapted})
-            before.append(mean_coverage(support))
-            after.append(mean_coverage(query))
+                delta, adapted, _ = learner.adapt(support, self._timesteps(),
+                                                  cfg.inner_updates)
+            query = self._sample(runner, adapted, cfg.query_steps)
+            tasks.append(Task(scenario, support, query, delta))
         set_task(runner, cfg.env_config.get("scenario", "ablation"))
+        self._load_actors(runner, meta_actors)
         self.metrics.aggregate([runner.get_metrics()], key=ENV_RUNNER_RESULTS)
         with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-            results = learner.meta_update(tasks)
-        self.metrics.aggregate([results], key=LEARNER_RESULTS)
+            results = self._outer_update(learner, tasks)
+        self.metrics.aggregate(results, key=LEARNER_RESULTS)
         self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group,
                                            policies=actor_ids, inference_only=True)
-        # coverage with the meta policy (support) and after adaptation (query)
-        self.metrics.log_value(META_BEFORE, float(np.mean(before)), window=1)
-        self.metrics.log_value(META_AFTER, float(np.mean(after)), window=1)
+        # diagnostics: the adaptation gain (query episodes with theta'_i vs support with
+        # theta) and how far the inner update moves the parameters
+        self.metrics.log_value(META_BEFORE, mean_coverage(
+            [e for t in tasks for e in t.support]), window=1)
+        self.metrics.log_value(META_AFTER, mean_coverage(
+            [e for t in tasks for e in t.query]), window=1)
+        self.metrics.log_value(META_DELTA_NORM, float(np.mean(
+            [delta_norm(learner, t.delta) for t in tasks])), window=1)
+
+    def _outer_update(self, learner: MetaPOCALearner, tasks: list[Task]) -> list[dict]:
+        """The meta update on every sampled step (see the module doc)."""
+        timesteps = self._timesteps()
+        if self.config.outer_rule == "reptile":
+            deltas = [learner.adapt(t.query, timesteps, 1, start=t.delta)[0] for t in tasks]
+            learner.reptile_step(deltas, self.config.reptile_lr)
+            return []
+        kwargs = learner.update_kwargs(timesteps)
+        support = [e for t in tasks for e in t.support]
+        results = [learner.update(episodes=copy.deepcopy(support), **kwargs)]
+        for task in tasks:
+            with learner.shifted(task.delta):
+                results.append(learner.update(episodes=copy.deepcopy(task.query), **kwargs))
+        return results
+
+    def _sample(self, runner, actors: dict[str, dict[str, torch.Tensor]], steps: int) -> list:
+        """``steps`` env steps with ``actors``, from fresh episodes (all of it kept)."""
+        with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
+            self._load_actors(runner, actors)
+            return runner.sample(num_timesteps=steps, force_reset=True)
+
+    def _timesteps(self) -> dict[str, Any]:
+        return {NUM_ENV_STEPS_SAMPLED_LIFETIME: self.metrics.peek(
+            (ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0)}
 
     @staticmethod
     def _load_actors(runner, state: dict[str, dict[str, torch.Tensor]]) -> None:
@@ -176,15 +212,24 @@ class MetaPOCA(POCA):
             runner.module[mid].load_state_dict(sd)
 
 
-def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, tasks: int = 10, episodes: int = 20,
-                     inner_steps: int = 1, inner_lr: float = 3e-4, order: int = 1,
-                     meta_epochs: int = 3, task_pool: int = N_TRAIN, train_batch_size: int = 1,
-                     minibatch_size: int = 1, **poca_kwargs: Any) -> MetaPOCAConfig:
-    """MetaPOCAConfig for the scanning env: POCA's settings plus the meta ones. It samples
-    whole episodes per task, so POCA's batch sizes (accepted for a common launch
-    signature) do not apply."""
-    config = poca_config(env_config, base=MetaPOCAConfig(), train_batch_size=1,
-                         minibatch_size=1, **poca_kwargs)
-    return config.meta(tasks=tasks, episodes=episodes, inner_steps=inner_steps,
-                       inner_lr=inner_lr, order=order, epochs=meta_epochs,
+def delta_norm(learner: MetaPOCALearner, delta: dict[Key, torch.Tensor]) -> float:
+    """||delta|| over the parameters (not the return moments)."""
+    params = {(mid, n) for mid in learner.module.keys()
+              for n, _ in learner.module[mid].named_parameters()}
+    return float(torch.sqrt(sum((d * d).sum() for k, d in delta.items() if k in params)))
+
+
+def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, tasks: int = 10,
+                     support_steps: int = 10_000, query_steps: int = 10_000,
+                     inner_updates: int = 1, outer: str = "maml", reptile_lr: float = 1.0,
+                     task_pool: int = N_TRAIN, train_batch_size: int = 4_000,
+                     minibatch_size: int = 1_024, **poca_kwargs: Any) -> MetaPOCAConfig:
+    """MetaPOCAConfig for the scanning env: POCA's settings (its minibatch size and epochs
+    serve the inner and outer updates) plus the meta ones. ``train_batch_size`` is accepted
+    for a common launch signature; a meta-iteration samples ``tasks * (support_steps +
+    query_steps)`` env steps instead."""
+    config = poca_config(env_config, base=MetaPOCAConfig(), train_batch_size=train_batch_size,
+                         minibatch_size=minibatch_size, **poca_kwargs)
+    return config.meta(tasks=tasks, support_steps=support_steps, query_steps=query_steps,
+                       inner_updates=inner_updates, outer=outer, reptile_lr=reptile_lr,
                        task_pool=task_pool)

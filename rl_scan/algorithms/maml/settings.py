@@ -4,35 +4,47 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from rl_scan.config import check_range
+from rl_scan.config import check_range, fail
+
+OUTER_RULES = ("maml", "reptile")
 
 
 @dataclass(frozen=True)
 class MetaSettings:
-    """Meta-learning settings of one MetaPOCA run (paper: tau = 10, K = 20, epoch 3)."""
+    """Meta-learning settings of one MetaPOCA run.
+
+    Paper: tau = 10 tasks, K = 20 support and 20 query episodes per task (500 steps each:
+    10,000 env steps), an inner update of POCA's 3 epochs.
+    """
 
     tasks: int = 10
-    """Tasks (train scenarios) per meta-iteration (paper tau = 10)."""
-    episodes: int = 20
-    """Support episodes, and as many query episodes, per task (paper K = 20)."""
-    inner_steps: int = 1
-    """Inner (adaptation) steps per task."""
-    inner_lr: float = 3e-4
-    """Inner learning rate (Adam for first order, SGD for second order)."""
-    order: int = 1
-    """1 = first order with inner Adam (paper), 2 = second order with SGD."""
-    meta_epochs: int = 3
-    """Meta (outer) steps per meta-iteration on its query episodes (paper: 3)."""
+    """Tasks (distinct train scenarios) per meta-iteration (paper tau = 10)."""
+    support_steps: int = 10_000
+    """Env steps sampled per task with the meta policy (paper: K = 20 episodes of 500)."""
+    query_steps: int = 10_000
+    """Env steps sampled per task with the adapted policy."""
+    inner_updates: int = 1
+    """Ordinary POCA updates (the preset's epochs and minibatches) on the support batch."""
+    outer: str = "maml"
+    """``maml``: first-order MAML-PPO on support (at theta) and query (at theta + delta)
+    batches; ``reptile``: theta += reptile_lr * mean over tasks of delta."""
+    reptile_lr: float = 1.0
+    """Reptile's step size epsilon (only with ``outer="reptile"``)."""
 
     def validate(self, prefix: str = "") -> None:
         check_range(prefix + "tasks", self.tasks, 1)
-        check_range(prefix + "episodes", self.episodes, 1)
-        check_range(prefix + "inner_steps", self.inner_steps, 1)
-        check_range(prefix + "inner_lr", self.inner_lr, 0.0, 1.0, lo_open=True)
-        check_range(prefix + "order", self.order, 1, 2)
-        check_range(prefix + "meta_epochs", self.meta_epochs, 1, 100)
+        check_range(prefix + "support_steps", self.support_steps, 1)
+        check_range(prefix + "query_steps", self.query_steps, 1)
+        check_range(prefix + "inner_updates", self.inner_updates, 1, 100)
+        if self.outer not in OUTER_RULES:
+            fail(prefix + "outer", self.outer, f"one of {list(OUTER_RULES)}")
+        check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
+
+    def env_steps_per_iteration(self) -> int:
+        return self.tasks * (self.support_steps + self.query_steps)
 
 
-# Smaller task batches for the short presets (the defaults are the paper's).
-PRESET_SETTINGS = {"smoke": dict(tasks=2, episodes=1, inner_steps=1),
-                   "quick": dict(tasks=4, episodes=2, inner_steps=2)}
+# Smaller task batches for the short presets (the defaults are the paper's: 200k env steps
+# per meta-iteration). Each divides its presets' budgets (smoke 800, quick 100k-1M).
+PRESET_SETTINGS = {"smoke": dict(tasks=2, support_steps=100, query_steps=100),
+                   "quick": dict(tasks=5, support_steps=2_000, query_steps=2_000)}

@@ -156,6 +156,7 @@ class POCACritic(TorchRLModule):
         # return statistics, EMA of the first and second moment; a checkpoint without
         # them loads as mean 0, second moment 1 (no normalisation).
         self.normalize_returns = bool(cfg.get("normalize_returns", True))
+        self.return_stats_frozen = False  # MetaPOCA: at theta + delta, theta's statistics
         self.register_buffer("return_moments", torch.tensor([0.0, 1.0]))
         self.register_buffer("return_stats_set", torch.tensor(False))
         self._tables: dict[str, dict[str, torch.Tensor]] = {}
@@ -190,7 +191,7 @@ class POCACritic(TorchRLModule):
         """Move the statistics towards ``returns`` (the first batch sets them) and rescale
         the output layer so that every de-normalised output stays what it was (PopArt,
         van Hasselt et al. 2016): the trust region around the old predictions holds."""
-        if not self.normalize_returns or returns.numel() == 0:
+        if not self.normalize_returns or self.return_stats_frozen or returns.numel() == 0:
             return
         returns = returns.double()
         batch = torch.stack([returns.mean(), (returns * returns).mean()]).float()
