@@ -4,7 +4,8 @@ Every rl-scan command writes under a results folder, and ``rl-scan report`` read
 
   run folder          RUN_FILE (what ran: algorithm, preset, env config, seed, commit),
                       EVAL_FILE (one entry per training-time evaluation), BEST_EVAL_FILE
-                      (``evaluate --best``), NODES_FILE (the Ray nodes it ran on), DONE (a
+                      (``evaluate --best``), NODES_FILE (the Ray nodes it ran on), META_FILE
+                      (MetaPOCA: diagnostics per meta-iteration), DONE (a
                       finished run of an experiment), and TUNE_DIR/trial/ (Tune:
                       progress.csv, result.json, checkpoints; NONFINITE_FILE after a NaN).
   study folder        STUDY_FILE, OPTUNA_DB, TRIALS_DIR/<trial id>/ (one run folder per
@@ -69,6 +70,8 @@ EV_VALUE = "explained_variance_v"  # POCA, under the critic: V at sampling time 
 EV_BASELINE = "explained_variance_baseline"  # POCA, under each actor module: its b_i
 META_BEFORE = "meta/coverage_before_adaptation"  # MetaPOCA: support episodes' coverage
 META_AFTER = "meta/coverage_after_adaptation"  # MetaPOCA: query episodes' coverage
+META_DELTA_NORM = "meta/delta_norm"  # MetaPOCA: mean over tasks of ||theta'_i - theta||
+META_FILE = "meta_diagnostics.json"  # in a MetaPOCA run folder: one entry per meta-iteration
 
 
 def scan_key(metric: str) -> str:
@@ -103,6 +106,29 @@ def append_eval(folder: Path, entry: dict[str, Any]) -> None:
     entries = read_json(path) or []
     entries = [e for e in entries if e[ITERATION] < entry[ITERATION]]
     write_json(path, [*entries, entry])
+
+
+def append_meta(folder: Path, result: dict[str, Any]) -> None:
+    """Add a MetaPOCA result's diagnostics to its run folder's META_FILE (an iteration run
+    again after a restore replaces its entry)."""
+    path = Path(folder) / META_FILE
+    entry = {ITERATION: result.get(ITERATION, 0), "env_steps": result.get(ENV_STEPS),
+             "before": result.get(META_BEFORE), "after": result.get(META_AFTER),
+             "delta_norm": result.get(META_DELTA_NORM)}
+    entries = [e for e in read_json(path) or [] if e[ITERATION] < entry[ITERATION]]
+    write_json(path, [*entries, entry])
+
+
+def adaptation_gain(entries: list[dict[str, Any]]) -> dict[str, float]:
+    """Mean support->query coverage gain and mean ||delta|| over the last half of a
+    MetaPOCA run's meta-iterations (nan without entries)."""
+    last = entries[len(entries) // 2:]
+    gains = [e["after"] - e["before"] for e in last
+             if e.get("after") is not None and e.get("before") is not None]
+    norms = [e["delta_norm"] for e in last if e.get("delta_norm") is not None]
+    return {"gain": float(sum(gains) / len(gains)) if gains else float("nan"),
+            "delta_norm": float(sum(norms) / len(norms)) if norms else float("nan"),
+            "iterations": len(last)}
 
 
 def record_nodes(folder: Path, iteration: int, nodes: dict[str, Any] | None) -> None:

@@ -221,6 +221,28 @@ def test_summary_means_and_stds_over_seeds_by_hand(tmp_path):
     assert "missing runs (1): poca_test1_s1" in table and "left out" in table
 
 
+def test_meta_training_diagnostics_are_summarised_over_the_last_half(tmp_path):
+    """Gain = query - support coverage, mean over the last half of the meta-iterations,
+    then mean and sample std over seeds; the table prints it."""
+    _eval_file(tmp_path, "meta-mrss", "test:0", 0, [(200, 0.5)])
+    for seed, metas in ((0, [(0.1, 0.0, 2.0), (0.2, 0.3, 1.0), (0.3, 0.5, 3.0)]),
+                        (1, [(0.1, 0.4, 9.0), (0.4, 0.4, 1.0)])):
+        run = tmp_path / R.PRETRAIN_DIR / f"meta-mrss_s{seed}"
+        run.mkdir(parents=True)
+        for it, (before, after, norm) in enumerate(metas, start=1):
+            R.append_meta(run, {R.ITERATION: it, R.ENV_STEPS: 100 * it, R.META_BEFORE: before,
+                                R.META_AFTER: after, R.META_DELTA_NORM: norm})
+    s = summarize(tmp_path, ["meta-mrss"], ["test:0"], seeds=2, budget=400)
+    # seed 0: last half = iterations 2, 3: gains .1, .2 -> .15, norms 1, 3 -> 2
+    # seed 1: iteration 2: gain 0, norm 1
+    assert s["meta_training"]["gain"]["values"] == pytest.approx([0.15, 0.0])
+    assert s["meta_training"]["delta_norm"]["values"] == pytest.approx([2.0, 1.0])
+    assert s["meta_training"]["gain"]["std"] == pytest.approx(0.15 / 2 ** 0.5)
+    assert "adaptation gain (query coverage with the adapted weights - support coverage " \
+           "with the meta weights) +7.5 ± 10.6 points; inner-update step ||delta|| 1.5" \
+           in format_table(s)
+
+
 @pytest.mark.slow
 def test_smoke_protocol_end_to_end(ray_session, tmp_path):
     summary = run_protocol(tmp_path, "mm", preset="smoke", methods=["meta-mrss", "poca"],

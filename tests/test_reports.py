@@ -326,3 +326,19 @@ def test_critic_diagnostics_are_read_from_progress_and_tabled(tmp_path):
     # last V: (0.8 + 0.55) / 2, last b_quad: (0.9 + 0.5) / 2; EV V >= 0.5 at 40k and 60k
     assert "| EV V | EV b_quad | env steps to EV V >= 0.5 (reached) |" in md
     assert "| poca on ablation | 0.68 | 0.70 | 50,000 (2/2) |" in md
+
+
+def test_meta_training_diagnostics_are_tabled_per_run(tmp_path):
+    from rl_scan.reports.build import meta_lines
+    from rl_scan.reports.collect import RunRecord
+
+    run = tmp_path / "meta-mrss_s0"
+    run.mkdir()
+    for it, (before, after, norm) in enumerate([(0.1, 0.0, 4.0), (0.2, 0.3, 1.0),
+                                                (0.3, 0.5, 3.0)], start=1):
+        R.append_meta(run, {R.ITERATION: it, R.ENV_STEPS: it * 100, R.META_BEFORE: before,
+                            R.META_AFTER: after, R.META_DELTA_NORM: norm})
+    plain = RunRecord("meta-mrss/pretrain", "dr", 0, tmp_path / "dr_s0")  # no meta file
+    lines = meta_lines([RunRecord("meta-mrss/pretrain", "meta-mrss", 0, run), plain])
+    assert lines[-1] == "| meta-mrss_s0 | 2 | +15.0 | 2 |"  # gains .1, .2; norms 1, 3
+    assert meta_lines([plain]) == []

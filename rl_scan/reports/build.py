@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from rl_scan import results as R
 from rl_scan.reports.collect import (
     MARL_EVAL_FILE,
     Collection,
@@ -238,6 +239,23 @@ def critic_lines(runs: list[RunRecord]) -> list[str]:
     return lines
 
 
+def meta_lines(runs: list[RunRecord]) -> list[str]:
+    """MetaPOCA's meta-training diagnostics per run (its META_FILE): the adaptation gain
+    and the inner update's step over the last half of its meta-iterations."""
+    rows = [(r, R.adaptation_gain(entries)) for r in runs
+            if (entries := R.read_json(r.path / R.META_FILE))]
+    if not rows:
+        return []
+    return ["", "Meta-training diagnostics (MetaPOCA), over the last half of each run's "
+            "meta-iterations: adaptation gain = coverage of the query episodes (adapted "
+            "weights) - coverage of the support episodes (meta weights), in points; ||delta|| = "
+            "how far the inner update moved the parameters.", "",
+            "| run | meta-iterations (last half) | adaptation gain | ‖delta‖ |",
+            "|---|---|---|---|",
+            *(f"| {r.path.name} | {g['iterations']} | {100 * g['gain']:+.1f} | "
+              f"{g['delta_norm']:.3g} |" for r, g in rows)]
+
+
 def add_comparison(data: Collection, compare: str | Path) -> None:
     """Add an earlier report's runs (``read_marl_eval``) and compare each condition of
     this report with its namesake there."""
@@ -350,6 +368,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         md += _table(rows, spec)
         md += best_checkpoint_table(runs)
         md += critic_lines(runs)
+        md += meta_lines(runs)
         if ref is not None and not math.isnan(ref):
             md += ["", f"Scripted greedy team on {scenarios[0]}: {100 * ref:.1f} % coverage."]
         imp = improvement_rows(spec, rows)

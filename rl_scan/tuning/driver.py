@@ -295,6 +295,7 @@ class RunProgress(Callback):
         if R.META_AFTER in result:  # meta-poca
             line += (f"  meta coverage {result[R.META_BEFORE]:5.3f} -> "
                      f"{result[R.META_AFTER]:5.3f} after adaptation")
+            R.append_meta(folder, result)
         if result.get(R.EVALUATED):
             line += f"  eval coverage {result.get(R.EVAL_SCORE, math.nan):5.3f}"
             R.append_eval(folder, R.eval_entry(result))

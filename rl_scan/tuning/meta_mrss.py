@@ -244,6 +244,14 @@ def summarize(root: Path, methods: list[str], tests: list[str], seeds: int,
             k: {"mean": _nanstat(np.nanmean, v), "std": sample_std(v), "values": v}
             for k, v in per_seed.items()}
         out["methods"][method]["runs"] = runs
+    gains = [R.adaptation_gain(R.read_json(run / R.META_FILE) or [])
+             for seed in range(seeds) if "meta-mrss" in methods
+             if (run := root / R.PRETRAIN_DIR / f"meta-mrss_s{seed}").is_dir()]
+    if gains:
+        out["meta_training"] = {k: {"mean": _nanstat(np.nanmean, [g[k] for g in gains]),
+                                    "std": sample_std([g[k] for g in gains]),
+                                    "values": [g[k] for g in gains]}
+                                for k in ("gain", "delta_norm")}
     return out
 
 
@@ -288,6 +296,14 @@ def format_table(summary: dict) -> str:
         ratio = "-" if math.isnan(a) or math.isnan(b) else f"{a / b:.2f}"
         lines.append(f"\nmeta-MRSS / standard POCA env steps to 80 % (censored): {ratio} "
                      "(goal <= 0.30)")
+    meta_training = summary.get("meta_training")
+    if meta_training:
+        gain, norm = meta_training["gain"], meta_training["delta_norm"]
+        lines.append(f"\nmeta-training, last half of its meta-iterations (mean ± std over "
+                     f"seeds): adaptation gain (query coverage with the adapted weights - "
+                     f"support coverage with the meta weights) {100 * gain['mean']:+.1f} ± "
+                     f"{100 * gain['std']:.1f} points; inner-update step ||delta|| "
+                     f"{norm['mean']:.3g}")
     lines.append(f"\nscenes x seeds every method finished (all compared on these): "
                  f"{len(summary.get('common', []))}")
     if summary["missing"]:

@@ -49,9 +49,7 @@ from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
 from rl_scan.config import ConfigError, check_range, fail
 from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.scenarios import N_TRAIN
-from rl_scan.results import META_AFTER, META_BEFORE
-
-META_DELTA_NORM = "meta/delta_norm"  # mean over tasks of ||theta'_i - theta|| (parameters)
+from rl_scan.results import META_AFTER, META_BEFORE, META_DELTA_NORM
 
 
 class MetaPOCAConfig(POCAConfig):
