@@ -86,6 +86,14 @@ def test_bench_env_smoke_writes_figures(capsys, tmp_path):
     (["bench", "env", "--seconds", "0"], "seconds=0.0"),
     (["bench", "train", "--threads", "0"], "threads=0"),
     (["bench", "train", "--batch", "0"], "batch=0"),
+    (["meta-train", "--preset", "smoke", "--meta", "inner_updates=0"],
+     "meta-poca.inner_updates=0 is invalid"),
+    (["meta-train", "--preset", "smoke", "--meta", "tasks=1001"], "meta-poca.tasks=1001"),
+    (["meta-train", "--preset", "smoke", "--meta", "query_steps=99"],
+     "meta-poca.query_steps=99 is invalid: allowed a multiple of num_envs_per_env_runner=2"),
+    (["meta-train", "--preset", "smoke", "--meta", "support_steps=200"],
+     "total_env_steps=800 is invalid: allowed a multiple of meta-poca's 600 env steps"),
+    (["meta-train", "--preset", "smoke", "--meta", "outer"], "--meta 'outer' is invalid"),
 ])
 def test_bad_input_is_one_clear_line(capsys, argv, needle):
     code, out, err = run(capsys, *argv)

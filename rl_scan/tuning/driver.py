@@ -109,6 +109,8 @@ def make_run_spec(algo: str, env_config: dict[str, Any] | None = None,
                                  "meta-updates with fixed settings)")
         preset = dataclasses.replace(preset, overlap_sampling=False, decay_schedules=False)
     settings = entry.make_settings(preset_name, settings_overrides)
+    if hasattr(settings, "check_preset"):
+        settings.check_preset(preset, prefix=f"{algo}.")
     per_iteration = getattr(settings, "env_steps_per_iteration", lambda: 1)()
     if preset.total_env_steps % per_iteration:  # it would train past the budget
         fail("total_env_steps", preset.total_env_steps,

@@ -43,7 +43,7 @@ from ray.rllib.utils.metrics import (
 
 from rl_scan.algorithms.callbacks import episode_summary
 from rl_scan.algorithms.maml.learners import Key, MetaPOCALearner
-from rl_scan.algorithms.maml.settings import OUTER_RULES
+from rl_scan.algorithms.maml.settings import OUTER_RULES, check_steps_fit
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
 from rl_scan.config import ConfigError, check_range, fail
@@ -92,12 +92,8 @@ class MetaPOCAConfig(POCAConfig):
         if self.outer_rule not in OUTER_RULES:
             fail("meta.outer", self.outer_rule, f"one of {list(OUTER_RULES)}")
         check_range("meta.reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
-        envs = self.num_envs_per_env_runner
-        for name in ("support_steps", "query_steps"):
-            steps = getattr(self, name)
-            if steps < envs or steps % envs:
-                fail(f"meta.{name}", steps, f"a multiple of num_envs_per_env_runner={envs} "
-                                            "(every env steps alike; nothing is discarded)")
+        check_steps_fit(self.support_steps, self.query_steps, self.num_envs_per_env_runner,
+                        "meta.")
         if self.num_env_runners != 0:
             raise ConfigError(f"num_env_runners={self.num_env_runners}: MetaPOCA samples "
                               "its tasks on the local env runner; allowed: 0")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from rl_scan.config import check_range, fail
+from rl_scan.envs.sim.scenarios import N_TRAIN
 
 OUTER_RULES = ("maml", "reptile")
 
@@ -32,7 +33,7 @@ class MetaSettings:
     """Reptile's step size epsilon (only with ``outer="reptile"``)."""
 
     def validate(self, prefix: str = "") -> None:
-        check_range(prefix + "tasks", self.tasks, 1)
+        check_range(prefix + "tasks", self.tasks, 1, N_TRAIN)  # distinct train scenarios
         check_range(prefix + "support_steps", self.support_steps, 1)
         check_range(prefix + "query_steps", self.query_steps, 1)
         check_range(prefix + "inner_updates", self.inner_updates, 1, 100)
@@ -40,8 +41,22 @@ class MetaSettings:
             fail(prefix + "outer", self.outer, f"one of {list(OUTER_RULES)}")
         check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
 
+    def check_preset(self, preset, prefix: str = "") -> None:
+        """What depends on the training preset: steps that fill the runner's envs."""
+        check_steps_fit(self.support_steps, self.query_steps,
+                        preset.num_envs_per_env_runner, prefix)
+
     def env_steps_per_iteration(self) -> int:
         return self.tasks * (self.support_steps + self.query_steps)
+
+
+def check_steps_fit(support_steps: int, query_steps: int, envs: int, prefix: str = "") -> None:
+    """Support and query steps must be multiples of the runner's envs (every env steps
+    alike, and nothing sampled is discarded)."""
+    for name, steps in (("support_steps", support_steps), ("query_steps", query_steps)):
+        if steps < envs or steps % envs:
+            fail(prefix + name, steps, f"a multiple of num_envs_per_env_runner={envs} "
+                                       "(every env steps alike; nothing is discarded)")
 
 
 # Smaller task batches for the short presets (the defaults are the paper's: 200k env steps
