@@ -368,3 +368,18 @@ def test_counterfactual_baseline_assigns_credit_to_the_agent_whose_action_counts
     assert adv_1.abs().mean() < 0.2 * adv_0.abs().mean()
     adv_v = returns - v  # the same for both agents when V is the baseline
     assert adv_v.abs().mean() > 0.8 * adv_0.abs().mean()
+
+
+def test_a_meta_iteration_spends_its_settings_steps_and_the_budget_is_a_whole_number_of_them():
+    from rl_scan.tuning.driver import make_run_spec
+
+    budget = {"total_env_steps": 100_000}
+    meta = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget)
+    assert meta.settings.env_steps_per_iteration() == 5 * (2_000 + 2_000)
+    assert meta.iterations == 5
+    assert make_run_spec("poca", {}, "quick", preset_overrides=budget).iterations == 25
+    assert make_run_spec("meta-poca", {}, "paper").iterations == 40  # 8M / 200k
+    reptile = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget,
+                            settings_overrides={"outer": "reptile", "query_steps": 3_000})
+    assert reptile.settings.outer == "reptile" and reptile.iterations == 4  # 25k each
+    assert reptile.metadata()["algo_settings"]["query_steps"] == 3_000

@@ -82,6 +82,12 @@ class RunSpec:
             algo_kwargs={**self.algo_kwargs, **run.algo_kwargs}, study=study,
             params=dict(params))
 
+    @property
+    def iterations(self) -> int:
+        """Training iterations to the budget (a meta-iteration samples its own steps)."""
+        per = getattr(self.settings, "env_steps_per_iteration", None)
+        return -(-self.preset.total_env_steps // per()) if per else self.preset.iterations
+
     def metadata(self) -> dict[str, Any]:
         """The run folder's RUN_FILE: what ran, from which code."""
         return {"algo": self.algo, "preset": self.preset_name,

@@ -185,7 +185,7 @@ def train_spec(spec: RunSpec, *, results_dir: str | Path = "results", name: str 
     console.print(f"[bold]{spec.algo}[/] on {env.scenario} ({env.team.wheeled} wheeled + "
                   f"{env.team.quad} quads, comm {env.comm_scheme}), preset "
                   f"{spec.preset_name}: {preset.total_env_steps:,} env steps in "
-                  f"{preset.iterations} iterations -> {run_dir}")
+                  f"{spec.iterations} iterations -> {run_dir}")
     grid = tuner.fit()
     errors = [r.error for r in grid if r.error]
     if errors:  # the cause's own line, not Ray's traceback around it
