@@ -117,11 +117,16 @@ def make_run_spec(algo: str, env_config: dict[str, Any] | None = None,
     settings = entry.make_settings(preset_name, settings_overrides)
     if hasattr(settings, "check_preset"):
         settings.check_preset(preset, prefix=f"{algo}.")
-    per_iteration = getattr(settings, "env_steps_per_iteration", lambda: 1)()
-    if preset.total_env_steps % per_iteration:  # it would train past the budget
-        fail("total_env_steps", preset.total_env_steps,
-             f"a multiple of {algo}'s {per_iteration:,} env steps per iteration, so that "
-             "every method gets the same budget")
+    per_iteration = getattr(settings, "env_steps_per_iteration", lambda: 0)()
+    if per_iteration:  # iterations of its own size (MetaPOCA's meta-iterations)
+        if preset.total_env_steps % per_iteration:  # it would train past the budget
+            fail("total_env_steps", preset.total_env_steps,
+                 f"a multiple of {algo}'s {per_iteration:,} env steps per iteration, so "
+                 "that every method gets the same budget")
+        preset = dataclasses.replace(preset, **{  # at the preset's env-step spacing
+            name: max(1, round(getattr(preset, name) * preset.train_batch_size / per_iteration))
+            for name in ("evaluation_interval", "checkpoint_frequency")
+            if getattr(preset, name) > 0})
     env = make_env_config(deep_merge(preset.env_overrides, dict(env_config or {})))
     if init_from is not None:
         from rl_scan.algorithms.rollout import resolve_checkpoint
