@@ -170,15 +170,14 @@ def test_the_outer_update_takes_epochs_times_minibatches_steps_on_every_batch(mo
         def _timesteps(self):
             return {}
 
-    Stub.config = config
-    MetaPOCA._outer_update(Stub(), learner, tasks)
-
     def minibatches(episodes) -> int:
         rows = max(_module_rows(episodes, mid) for mid in ("wheeled", "quad"))
         return math.ceil(config.num_epochs * rows / config.minibatch_size)
 
     expected = minibatches([e for t in tasks for e in t.support]) + sum(
         minibatches(t.query) for t in tasks)
+    Stub.config = config
+    MetaPOCA._outer_update(Stub(), learner, tasks)
     assert len(steps) == expected > 2 * config.num_epochs
 
 

@@ -161,11 +161,6 @@ class MetaPOCA(POCA):
         set_task(runner, cfg.env_config.get("scenario", "ablation"))
         self._load_actors(runner, meta_actors)
         self.metrics.aggregate([runner.get_metrics()], key=ENV_RUNNER_RESULTS)
-        with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-            results = self._outer_update(learner, tasks)
-        self.metrics.aggregate(results, key=LEARNER_RESULTS)
-        self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group,
-                                           policies=actor_ids, inference_only=True)
         # diagnostics: the adaptation gain (query episodes with theta'_i vs support with
         # theta) and how far the inner update moves the parameters
         self.metrics.log_value(META_BEFORE, mean_coverage(
@@ -174,9 +169,15 @@ class MetaPOCA(POCA):
             [e for t in tasks for e in t.query]), window=1)
         self.metrics.log_value(META_DELTA_NORM, float(np.mean(
             [delta_norm(learner, t.delta) for t in tasks])), window=1)
+        with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
+            results = self._outer_update(learner, tasks)
+        self.metrics.aggregate(results, key=LEARNER_RESULTS)
+        self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group,
+                                           policies=actor_ids, inference_only=True)
 
     def _outer_update(self, learner: MetaPOCALearner, tasks: list[Task]) -> list[dict]:
-        """The meta update on every sampled step (see the module doc)."""
+        """The meta update on every sampled step (see the module doc); the episodes are
+        its own from here (RLlib's learner connectors extend them in place)."""
         timesteps = self._timesteps()
         if self.config.outer_rule == "reptile":
             deltas = [learner.adapt(t.query, timesteps, 1, start=t.delta)[0] for t in tasks]
@@ -184,10 +185,10 @@ class MetaPOCA(POCA):
             return []
         kwargs = learner.update_kwargs(timesteps)
         support = [e for t in tasks for e in t.support]
-        results = [learner.update(episodes=copy.deepcopy(support), **kwargs)]
+        results = [learner.update(episodes=support, **kwargs)]
         for task in tasks:
             with learner.shifted(task.delta):
-                results.append(learner.update(episodes=copy.deepcopy(task.query), **kwargs))
+                results.append(learner.update(episodes=task.query, **kwargs))
         return results
 
     def _sample(self, runner, actors: dict[str, dict[str, torch.Tensor]], steps: int) -> list:
