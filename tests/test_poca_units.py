@@ -100,6 +100,27 @@ def test_full_policy_module_loss_on_a_tiny_batch():
     assert gaussian_entropy(log_std).item() == pytest.approx(entropy, abs=1e-6)
 
 
+def test_the_joint_ratio_ablation_clips_the_product_of_the_dimensions_ratios():
+    from rl_scan.algorithms.poca.learner import actor_loss
+
+    # means move .15 and .1 from 0 (sigma 1, action 1 in both dims), A = 1, beta = 0.
+    log_std = torch.zeros(1, 2)
+    fwd = {Columns.ACTION_DIST_INPUTS: torch.cat([torch.tensor([[0.15, 0.1]]), log_std], -1)}
+    batch = {Columns.ACTION_DIST_INPUTS: torch.cat([torch.zeros(1, 2), log_std], -1),
+             Columns.ACTIONS: torch.tensor([[1.0, 1.0]]), Columns.LOSS_MASK: torch.ones(1),
+             Postprocessing.ADVANTAGES: torch.tensor([1.0])}
+    # logp_new - logp_old = -((1 - m)^2 - 1) / 2 = m - m^2 / 2: .13875 and .095
+    per_dim, _ = actor_loss(fwd, batch, 0.2, 0.0)
+    joint, _ = actor_loss(fwd, batch, 0.2, 0.0, joint_ratio=True)
+    assert per_dim.item() == pytest.approx(-(math.exp(0.13875) + math.exp(0.095)) / 2, abs=1e-5)
+    assert joint.item() == pytest.approx(-1.2, abs=1e-6)  # e^.23375 = 1.263 > 1.2
+    from rl_scan.algorithms.poca import POCAConfig
+    from rl_scan.config import ConfigError
+
+    with pytest.raises(ConfigError, match="policy_ratio='both' is invalid"):
+        POCAConfig().poca(policy_ratio="both")
+
+
 def _critic(slot_kinds, obs_dims=(3, 4), act_dims=(2, 3)):
     import gymnasium as gym
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec

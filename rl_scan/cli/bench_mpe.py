@@ -22,6 +22,7 @@ ALGOS = {  # name -> (algorithm, POCA settings): the ablations of issue 14's rev
     "poca": ("poca", {}),
     "poca-value-baseline": ("poca", {"advantage_baseline": "value"}),
     "poca-mean-reward": ("poca", {"group_reward": "mean"}),
+    "poca-joint-ratio": ("poca", {"policy_ratio": "joint"}),
 }
 
 

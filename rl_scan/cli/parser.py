@@ -142,8 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "and print the final mean episode returns.")
     bmpe.add_argument("--algos", default="ppo,poca",
                       help="comma-separated, of ppo, poca, and POCA's ablations "
-                           "poca-value-baseline (advantage G - V for every agent) and "
-                           "poca-mean-reward (group reward = mean over agents)")
+                           "poca-value-baseline (advantage G - V for every agent), "
+                           "poca-mean-reward (group reward = mean over agents) and "
+                           "poca-joint-ratio (the joint action density's ratio is clipped)")
     bmpe.add_argument("--seeds", type=int, default=3)
     bmpe.add_argument("--env-steps", type=int, default=100_000, help="budget per run")
     bmpe.add_argument("--json", default=None, help="also write curves and figures here")

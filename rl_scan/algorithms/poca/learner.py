@@ -32,13 +32,16 @@ from rl_scan.algorithms.poca.modules import CRITIC_ID, TRAIN_TABLE
 
 
 def actor_loss(fwd_out: dict[str, Any], batch: dict[str, Any], clip_param: float,
-               beta: float) -> tuple[torch.Tensor, dict[str, Any]]:
-    """PPO-clipped policy loss (ratio per action dimension) minus beta * entropy."""
+               beta: float, joint_ratio: bool = False) -> tuple[torch.Tensor, dict[str, Any]]:
+    """PPO-clipped policy loss minus beta * entropy. The ratio is taken per action dimension
+    (ML-Agents), or of the joint density with ``joint_ratio`` (RLlib's PPO; an ablation)."""
     mean, log_std = fwd_out[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
     old_mean, old_log_std = batch[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
     actions = batch[Columns.ACTIONS]
     logp = gaussian_logp_per_dim(actions, mean, log_std)
     old_logp = gaussian_logp_per_dim(actions, old_mean, old_log_std).detach()
+    if joint_ratio:
+        logp, old_logp = logp.sum(-1, keepdim=True), old_logp.sum(-1, keepdim=True)
     mask = batch[Columns.LOSS_MASK]
     policy_loss = clipped_policy_loss(logp, old_logp, batch[Postprocessing.ADVANTAGES],
                                       clip_param, mask)
@@ -94,7 +97,8 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
     def compute_loss_for_module(self, *, module_id: str, config, batch: dict[str, Any],
                                 fwd_out: dict[str, Any]) -> torch.Tensor:
         beta = self.entropy_coeff_schedulers[module_id].get_current_value()
-        loss, stats = actor_loss(fwd_out, batch, self.current_clip(), beta)
+        loss, stats = actor_loss(fwd_out, batch, self.current_clip(), beta,
+                                 joint_ratio=getattr(config, "policy_ratio", "") == "joint")
         self.metrics.log_dict(stats, key=module_id, window=1)
         return loss
 

@@ -77,12 +77,14 @@ class POCAConfig(OverlappedSamplingConfig, PPOConfig):
         self.normalize_returns = True  # the critic predicts in running return units
         self.advantage_baseline = "counterfactual"  # ablation: "value" (G - V for all)
         self.group_reward = "sum"  # ablation: "mean" (the sum over the robots present)
+        self.policy_ratio = "per_dimension"  # ablation: "joint" (RLlib's PPO)
 
     def poca(self, *, team: dict[str, Any] = NotProvided, actor_hiddens=NotProvided,
              critic_hidden: int = NotProvided, critic_heads: int = NotProvided,
              value_clip: float | None = NotProvided,
              normalize_returns: bool = NotProvided, advantage_baseline: str = NotProvided,
-             group_reward: str = NotProvided) -> POCAConfig:
+             group_reward: str = NotProvided, policy_ratio: str = NotProvided
+             ) -> POCAConfig:
         """POCA-specific settings; ``team`` comes from ``team_layout(env_config)``.
 
         ``value_clip``: how far V and b_i may move from their collection-time values per
@@ -90,8 +92,13 @@ class POCAConfig(OverlappedSamplingConfig, PPOConfig):
         in units of the running return statistics when ``normalize_returns`` (default).
         Ablations of the issue-14 review: ``advantage_baseline="value"`` gives every robot
         G - V (no counterfactual baseline), ``group_reward="mean"`` divides the group
-        reward by the robots present.
+        reward by the robots present, ``policy_ratio="joint"`` clips the ratio of the joint
+        action density instead of each dimension's.
         """
+        if policy_ratio is not NotProvided:
+            if policy_ratio not in ("per_dimension", "joint"):
+                fail("policy_ratio", policy_ratio, "'per_dimension' or 'joint'")
+            self.policy_ratio = policy_ratio
         if advantage_baseline is not NotProvided:
             if advantage_baseline not in ("counterfactual", "value"):
                 fail("advantage_baseline", advantage_baseline, "'counterfactual' or 'value'")
