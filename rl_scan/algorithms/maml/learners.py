@@ -59,7 +59,8 @@ class MetaPOCALearner(POCATorchLearner):
         meta one.
         """
         saved = self._snapshot()
-        theta = {k: t.detach().clone() for k, t in self.float_state().items()}
+        theta = {(mid, name): t for mid, state in saved[0].items() for name, t in state.items()
+                 if t.is_floating_point()}
         if start is not None:
             with torch.no_grad():
                 for key, t in self.float_state().items():
