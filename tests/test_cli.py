@@ -92,7 +92,7 @@ def test_bench_env_smoke_writes_figures(capsys, tmp_path):
     (["meta-train", "--preset", "smoke", "--meta", "query_steps=99"],
      "meta-poca.query_steps=99 is invalid: allowed a multiple of num_envs_per_env_runner=2"),
     (["meta-train", "--preset", "smoke", "--meta", "support_steps=200"],
-     "total_env_steps=800 is invalid: allowed a multiple of meta-poca's 600 env steps"),
+     "total_env_steps=800 is invalid: allowed a multiple of 600, MetaPOCA's env steps"),
     (["meta-train", "--preset", "smoke", "--meta", "outer"], "--meta 'outer' is invalid"),
 ])
 def test_bad_input_is_one_clear_line(capsys, argv, needle):

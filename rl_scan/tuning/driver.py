@@ -115,18 +115,8 @@ def make_run_spec(algo: str, env_config: dict[str, Any] | None = None,
                                  "meta-updates with fixed settings)")
         preset = dataclasses.replace(preset, overlap_sampling=False, decay_schedules=False)
     settings = entry.make_settings(preset_name, settings_overrides)
-    if hasattr(settings, "check_preset"):
-        settings.check_preset(preset, prefix=f"{algo}.")
-    per_iteration = getattr(settings, "env_steps_per_iteration", lambda: 0)()
-    if per_iteration:  # iterations of its own size (MetaPOCA's meta-iterations)
-        if preset.total_env_steps % per_iteration:  # it would train past the budget
-            fail("total_env_steps", preset.total_env_steps,
-                 f"a multiple of {algo}'s {per_iteration:,} env steps per iteration, so "
-                 "that every method gets the same budget")
-        preset = dataclasses.replace(preset, **{  # at the preset's env-step spacing
-            name: max(1, round(getattr(preset, name) * preset.train_batch_size / per_iteration))
-            for name in ("evaluation_interval", "checkpoint_frequency")
-            if getattr(preset, name) > 0})
+    if hasattr(settings, "fit_preset"):  # iterations of its own size (MetaPOCA)
+        preset = settings.fit_preset(preset, prefix=f"{algo}.")
     env = make_env_config(deep_merge(preset.env_overrides, dict(env_config or {})))
     if init_from is not None:
         from rl_scan.algorithms.rollout import resolve_checkpoint

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from rl_scan.config import check_range, fail
@@ -41,10 +42,22 @@ class MetaSettings:
             fail(prefix + "outer", self.outer, f"one of {list(OUTER_RULES)}")
         check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
 
-    def check_preset(self, preset, prefix: str = "") -> None:
-        """What depends on the training preset: steps that fill the runner's envs."""
+    def fit_preset(self, preset, prefix: str = ""):
+        """The training preset as a MetaPOCA run uses it: support and query steps that fill
+        the runner's envs, a budget of whole meta-iterations (no method trains past it),
+        and evaluations and checkpoints at the preset's env-step spacing."""
         check_steps_fit(self.support_steps, self.query_steps,
                         preset.num_envs_per_env_runner, prefix)
+        per_iteration = self.env_steps_per_iteration()
+        if preset.total_env_steps % per_iteration:
+            fail("total_env_steps", preset.total_env_steps,
+                 f"a multiple of {per_iteration:,}, MetaPOCA's env steps per meta-iteration "
+                 "(tasks x (support_steps + query_steps)), so that every method gets the "
+                 "same budget")
+        return dataclasses.replace(preset, **{
+            name: max(1, round(getattr(preset, name) * preset.train_batch_size / per_iteration))
+            for name in ("evaluation_interval", "checkpoint_frequency")
+            if getattr(preset, name) > 0})
 
     def env_steps_per_iteration(self) -> int:
         return self.tasks * (self.support_steps + self.query_steps)
