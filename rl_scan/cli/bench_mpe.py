@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from rl_scan import results as R
+from rl_scan.reports.stats import sample_std
 
 ENV_NAME = "rl_scan_mpe_simple_spread"
 MODULE = "agent"
@@ -111,11 +112,12 @@ def run_bench_mpe(algos: list[str], seeds: int, env_steps: int, *, train_batch_s
              for a in algos}
     first = {a: [c[0][1] for c in curves[a].values()] for a in algos}
     table = Table(title="simple_spread_v3: mean episode return (sum over agents)")
-    for col in ("algorithm", "first iteration", "final (last 3 iterations)", "per seed"):
+    for col in ("algorithm", "first iteration", "final (last 3 iterations; mean ± sample "
+                "std over seeds)", "per seed"):
         table.add_column(col, justify="left" if col == "algorithm" else "right")
     for a in algos:
         table.add_row(a, f"{np.mean(first[a]):.1f}",
-                      f"{np.mean(final[a]):.1f} ± {np.std(final[a]):.1f}",
+                      f"{np.mean(final[a]):.1f} ± {sample_std(final[a]):.1f}",
                       ", ".join(f"{v:.1f}" for v in final[a]))
     console.print(table)
     return {"env_steps": env_steps, "final": final, "first": first,
