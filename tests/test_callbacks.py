@@ -18,6 +18,10 @@ def test_non_finite_loss_stops_with_module_and_iteration():
     with pytest.raises(NonFiniteLossError, match=r"policy_loss=nan for module 'quad' at "
                                                  r"training iteration 5"):
         cb.on_train_result(result=bad)
+    both = {"training_iteration": 6,  # several NaN losses: the first by name, every time
+            "learners": {"quad": {"vf_loss_unclipped": math.nan, "policy_loss": math.nan}}}
+    with pytest.raises(NonFiniteLossError, match=r"^policy_loss=nan for module 'quad'"):
+        cb.on_train_result(result=both)
 
 
 class _Episode:

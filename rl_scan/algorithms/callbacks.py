@@ -31,9 +31,10 @@ class NonFiniteLossError(FloatingPointError):
 
 
 def check_losses_finite(result: dict) -> None:
-    """Raise NonFiniteLossError naming the module and iteration if any loss is not finite."""
-    for module_id, stats in result.get("learners", {}).items():
-        for key, value in stats.items() if isinstance(stats, dict) else ():
+    """Raise NonFiniteLossError naming the module and iteration if any loss is not finite
+    (the first such loss by name, so the message does not depend on logging order)."""
+    for module_id, stats in sorted(result.get("learners", {}).items()):
+        for key, value in sorted(stats.items()) if isinstance(stats, dict) else ():
             if "loss" in key and isinstance(value, (int, float)) and not math.isfinite(value):
                 raise NonFiniteLossError(
                     f"{key}={value} for module {module_id!r} at training iteration "
