@@ -122,6 +122,10 @@ PROTOCOLS = {  # the meta-MRSS experiment's budgets (`rl-scan experiment meta-mr
     "smoke": Protocol("smoke", pretrain_steps=800, adapt_steps=800, eval_interval=1,
                       eval_episodes=1),
     "quick": Protocol("quick", pretrain_steps=100_000, adapt_steps=40_000, eval_interval=2),
+    # budgets where methods separate that still run on 2 cores in one night: 18.6M env
+    # steps over 69 runs, ~6 h with 2 runs at a time (issue 16)
+    "long": Protocol("quick", pretrain_steps=1_000_000, adapt_steps=160_000,
+                     eval_interval=4),
     "paper": Protocol("paper", pretrain_steps=8_000_000, adapt_steps=2_000_000,
                       eval_interval=10),
 }
