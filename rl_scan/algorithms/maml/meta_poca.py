@@ -46,7 +46,7 @@ from rl_scan.algorithms.maml.learners import Key, MetaPOCALearner
 from rl_scan.algorithms.maml.settings import OUTER_RULES, check_steps_fit
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
-from rl_scan.config import ConfigError, check_range, fail
+from rl_scan.config import check_range, fail
 from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.scenarios import N_TRAIN
 from rl_scan.results import META_AFTER, META_BEFORE, META_DELTA_NORM
@@ -95,8 +95,8 @@ class MetaPOCAConfig(POCAConfig):
         check_steps_fit(self.support_steps, self.query_steps, self.num_envs_per_env_runner,
                         "meta.")
         if self.num_env_runners != 0:
-            raise ConfigError(f"num_env_runners={self.num_env_runners}: MetaPOCA samples "
-                              "its tasks on the local env runner; allowed: 0")
+            fail("num_env_runners", self.num_env_runners,
+                 "0 (MetaPOCA samples its tasks on the local env runner)")
         for name in ("entropy_coeff", "lr"):
             if not isinstance(getattr(self, name), (int, float)):
                 fail(name, getattr(self, name), "a constant for MetaPOCA (no schedule)")
@@ -159,7 +159,6 @@ class MetaPOCA(POCA):
             query = self._sample(runner, adapted, cfg.query_steps)
             tasks.append(Task(scenario, support, query, delta))
         set_task(runner, cfg.env_config.get("scenario", "ablation"))
-        self._load_actors(runner, meta_actors)
         self.metrics.aggregate([runner.get_metrics()], key=ENV_RUNNER_RESULTS)
         # diagnostics: the adaptation gain (query episodes with theta'_i vs support with
         # theta) and how far the inner update moves the parameters
