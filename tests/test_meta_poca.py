@@ -88,6 +88,32 @@ def test_the_inner_update_is_an_ordinary_poca_update_and_leaves_theta_as_it_was(
                 assert torch.equal(v, meta_adam[name]["state"][p][k]), (name, k)
 
 
+def test_the_inner_update_may_continue_the_meta_adam_state_and_leaves_it_as_it_was():
+    """inner_adam='meta': the inner steps start from a copy of the meta optimizer's moments
+    (a standalone learner given the same state takes the same steps)."""
+    config, runner, learner = _setup(inner_adam="meta")
+    support = _sample(runner, "train:0")
+    learner.update(episodes=copy.deepcopy(support), **learner.update_kwargs({}))
+    theta = _state(learner)
+    plain = config.build_learner(env=None, spaces=runner.get_spaces())
+    plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
+    meta_adam = {n: copy.deepcopy(o.state_dict()) for n, o in learner._named_optimizers.items()}
+    _seeded()
+    delta, _, _ = learner.adapt(support, {}, fresh_adam=False)
+    _seeded()
+    plain.update(episodes=copy.deepcopy(support), **plain.update_kwargs({}))
+    reached = {k: t.detach() for k, t in plain.float_state().items()}
+    for key, d in delta.items():
+        torch.testing.assert_close(theta[key] + d, reached[key], rtol=1e-5, atol=1e-6)
+    _seeded()
+    fresh, _, _ = learner.adapt(support, {})
+    assert any(not torch.allclose(fresh[k], delta[k]) for k in delta)
+    for name, opt in learner._named_optimizers.items():
+        for p, st in opt.state_dict()["state"].items():
+            for k, v in st.items():
+                assert torch.equal(v, meta_adam[name]["state"][p][k]), (name, k)
+
+
 def _params(learner) -> dict:
     return {(mid, n): p for mid in learner.module.keys()
             for n, p in learner.module[mid].named_parameters()}
@@ -237,6 +263,7 @@ def test_reptile_moves_theta_by_the_mean_task_delta():
                              r"num_envs_per_env_runner=2"),
     (dict(query_steps=1), r"meta.query_steps=1 is invalid"),
     (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'reptile'\]"),
+    (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),
     (dict(num_env_runners=1), r"num_env_runners=1"),
 ])
 def test_bad_meta_settings_fail_before_building(meta, message):

@@ -49,10 +49,10 @@ class MetaPOCALearner(POCATorchLearner):
                 if t.is_floating_point()}
 
     def adapt(self, episodes: list, timesteps: dict[str, Any], updates: int = 1,
-              start: dict[Key, torch.Tensor] | None = None
+              start: dict[Key, torch.Tensor] | None = None, fresh_adam: bool = True
               ) -> tuple[dict[Key, torch.Tensor], dict[str, dict[str, torch.Tensor]], dict]:
         """``updates`` ordinary POCA updates on ``episodes`` from theta (or theta + ``start``)
-        with a fresh Adam.
+        with a fresh Adam (or, ``fresh_adam=False``, from a copy of the meta Adam's state).
 
         Returns (delta = the state reached - theta, the adapted actors' state dicts, the
         last update's results); the learner is back at theta, its optimizer state the
@@ -65,8 +65,9 @@ class MetaPOCALearner(POCATorchLearner):
             with torch.no_grad():
                 for key, t in self.float_state().items():
                     t.add_(start[key])
-        for optimizer in self._named_optimizers.values():
-            optimizer.state.clear()  # fresh moments: Adam starts as a new optimizer does
+        if fresh_adam:
+            for optimizer in self._named_optimizers.values():
+                optimizer.state.clear()  # fresh moments: Adam starts as a new optimizer does
         for _ in range(updates):
             results = self.update(episodes=copy.deepcopy(episodes),
                                   **self.update_kwargs(timesteps))

@@ -43,7 +43,7 @@ from ray.rllib.utils.metrics import (
 
 from rl_scan.algorithms.callbacks import episode_summary
 from rl_scan.algorithms.maml.learners import Key, MetaPOCALearner
-from rl_scan.algorithms.maml.settings import OUTER_RULES, check_steps_fit
+from rl_scan.algorithms.maml.settings import INNER_ADAM, OUTER_RULES, check_steps_fit
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
 from rl_scan.config import check_range, fail
@@ -61,18 +61,21 @@ class MetaPOCAConfig(POCAConfig):
         self.support_steps = 10_000
         self.query_steps = 10_000
         self.inner_updates = 1
+        self.inner_adam = "fresh"
         self.outer_rule = "maml"
         self.reptile_lr = 1.0
         self.task_pool = N_TRAIN
 
     def meta(self, *, tasks: int = NotProvided, support_steps: int = NotProvided,
              query_steps: int = NotProvided, inner_updates: int = NotProvided,
+             inner_adam: str = NotProvided,
              outer: str = NotProvided, reptile_lr: float = NotProvided,
              task_pool: int = NotProvided) -> MetaPOCAConfig:
         """Meta settings (``MetaSettings`` documents each); ``task_pool``: tasks are drawn
         from ``train:0`` .. ``train:{task_pool - 1}``."""
         for name, value in (("meta_tasks", tasks), ("support_steps", support_steps),
                             ("query_steps", query_steps), ("inner_updates", inner_updates),
+                            ("inner_adam", inner_adam),
                             ("outer_rule", outer), ("reptile_lr", reptile_lr),
                             ("task_pool", task_pool)):
             if value is not NotProvided:
@@ -89,6 +92,8 @@ class MetaPOCAConfig(POCAConfig):
         check_range("meta.inner_updates", self.inner_updates, 1, 100)
         check_range("meta.task_pool", self.task_pool, 1, N_TRAIN)
         check_range("meta.tasks", self.meta_tasks, 1, self.task_pool)  # distinct tasks
+        if self.inner_adam not in INNER_ADAM:
+            fail("meta.inner_adam", self.inner_adam, f"one of {list(INNER_ADAM)}")
         if self.outer_rule not in OUTER_RULES:
             fail("meta.outer", self.outer_rule, f"one of {list(OUTER_RULES)}")
         check_range("meta.reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
@@ -155,7 +160,8 @@ class MetaPOCA(POCA):
             support = self._sample(runner, meta_actors, cfg.support_steps)
             with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
                 delta, adapted, _ = learner.adapt(support, self._timesteps(),
-                                                  cfg.inner_updates)
+                                                  cfg.inner_updates,
+                                                  fresh_adam=cfg.inner_adam == "fresh")
             query = self._sample(runner, adapted, cfg.query_steps)
             tasks.append(Task(scenario, support, query, delta))
         set_task(runner, cfg.env_config.get("scenario", "ablation"))
@@ -215,7 +221,8 @@ def delta_norm(learner: MetaPOCALearner, delta: dict[Key, torch.Tensor]) -> floa
 
 def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, tasks: int = 10,
                      support_steps: int = 10_000, query_steps: int = 10_000,
-                     inner_updates: int = 1, outer: str = "maml", reptile_lr: float = 1.0,
+                     inner_updates: int = 1, inner_adam: str = "fresh", outer: str = "maml",
+                     reptile_lr: float = 1.0,
                      task_pool: int = N_TRAIN, train_batch_size: int = 4_000,
                      minibatch_size: int = 1_024, **poca_kwargs: Any) -> MetaPOCAConfig:
     """MetaPOCAConfig for the scanning env: POCA's settings (its minibatch size and epochs
@@ -225,5 +232,6 @@ def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, tasks: int = 10,
     config = poca_config(env_config, base=MetaPOCAConfig(), train_batch_size=train_batch_size,
                          minibatch_size=minibatch_size, **poca_kwargs)
     return config.meta(tasks=tasks, support_steps=support_steps, query_steps=query_steps,
-                       inner_updates=inner_updates, outer=outer, reptile_lr=reptile_lr,
+                       inner_updates=inner_updates, inner_adam=inner_adam, outer=outer,
+                       reptile_lr=reptile_lr,
                        task_pool=task_pool)

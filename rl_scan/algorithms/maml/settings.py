@@ -9,6 +9,7 @@ from rl_scan.config import check_range, fail
 from rl_scan.envs.sim.scenarios import N_TRAIN
 
 OUTER_RULES = ("maml", "reptile")
+INNER_ADAM = ("fresh", "meta")
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,9 @@ class MetaSettings:
     """Env steps sampled per task with the adapted policy."""
     inner_updates: int = 1
     """Ordinary POCA updates (the preset's epochs and minibatches) on the support batch."""
+    inner_adam: str = "fresh"
+    """The inner update's Adam state: ``fresh`` (a new optimizer, the paper's reading) or
+    ``meta`` (a copy of the meta optimizer's moments: the inner steps continue its scale)."""
     outer: str = "maml"
     """``maml``: first-order MAML-PPO on support (at theta) and query (at theta + delta)
     batches; ``reptile``: theta += reptile_lr * mean over tasks of delta."""
@@ -38,6 +42,8 @@ class MetaSettings:
         check_range(prefix + "support_steps", self.support_steps, 1)
         check_range(prefix + "query_steps", self.query_steps, 1)
         check_range(prefix + "inner_updates", self.inner_updates, 1, 100)
+        if self.inner_adam not in INNER_ADAM:
+            fail(prefix + "inner_adam", self.inner_adam, f"one of {list(INNER_ADAM)}")
         if self.outer not in OUTER_RULES:
             fail(prefix + "outer", self.outer, f"one of {list(OUTER_RULES)}")
         check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
