@@ -61,7 +61,7 @@ def test_every_paper_run_is_checked_up_front_and_meta_poca_samples_locally(tmp_p
     assert adapt.after.name == "dr_s1"
     assert adapt.kwargs["init_from"] == tmp_path / R.PRETRAIN_DIR / "dr_s1"
     assert all(j.after is None for j in plan if j.name.startswith("poca_"))
-    for name, protocol in PROTOCOLS.items():  # every protocol's budgets fit every method
+    for protocol in PROTOCOLS.values():  # every protocol's budgets fit every method
         check_jobs(plan_jobs(tmp_path, ["meta-mrss", "dr", "transfer", "poca"], ["test:0"],
                              seeds=1, protocol=protocol, env_config={}))
     with pytest.raises(ConfigError, match="comm_scheme"):
