@@ -255,6 +255,37 @@ def test_reptile_moves_theta_by_the_mean_task_delta():
         torch.testing.assert_close(t, expected, rtol=1e-5, atol=1e-6)
 
 
+def test_the_multitask_control_learns_the_same_batches_at_theta():
+    """outer='multitask' is the maml update without the shift: a standalone learner with
+    the same state making the same ordinary updates ends at the same weights."""
+    config, runner, learner = _setup(outer="multitask")
+    from rl_scan.algorithms.maml.meta_poca import MetaPOCA, Task
+
+    tasks = []
+    for scenario in ("train:0", "train:1"):
+        support = _sample(runner, scenario)
+        delta, _, _ = learner.adapt(support, {})
+        tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
+    plain = config.build_learner(env=None, spaces=runner.get_spaces())
+    plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
+    batches = [[e for t in tasks for e in t.support], *(t.query for t in tasks)]
+    batches = copy.deepcopy(batches)
+
+    class Stub:
+        def _timesteps(self):
+            return {}
+
+    Stub.config = config
+    _seeded()
+    MetaPOCA._outer_update(Stub(), learner, tasks)
+    _seeded()
+    for episodes in batches:
+        plain.update(episodes=episodes, **plain.update_kwargs({}))
+    reached = plain.float_state()
+    for key, t in learner.float_state().items():
+        torch.testing.assert_close(t, reached[key], rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize("meta, message", [
     (dict(inner_updates=0), r"meta.inner_updates=0 is invalid"),
     (dict(tasks=0), r"meta.tasks=0 is invalid"),
@@ -262,7 +293,8 @@ def test_reptile_moves_theta_by_the_mean_task_delta():
     (dict(support_steps=25), r"meta.support_steps=25 is invalid: allowed a multiple of "
                              r"num_envs_per_env_runner=2"),
     (dict(query_steps=1), r"meta.query_steps=1 is invalid"),
-    (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'reptile'\]"),
+    (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'reptile', "
+                        r"'multitask'\]"),
     (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),
     (dict(num_env_runners=1), r"num_env_runners=1"),
 ])
