@@ -256,8 +256,8 @@ def test_reptile_moves_theta_by_the_mean_task_delta():
 
 
 def test_the_multitask_control_learns_the_same_batches_at_theta():
-    """outer='multitask' is the maml update without the shift: a standalone learner with
-    the same state making the same ordinary updates ends at the same weights."""
+    """outer='multitask' is one ordinary update at theta on every batch (DR on the same
+    data): a standalone learner with the same state making it ends at the same weights."""
     config, runner, learner = _setup(outer="multitask")
     from rl_scan.algorithms.maml.meta_poca import MetaPOCA, Task
 
@@ -268,8 +268,8 @@ def test_the_multitask_control_learns_the_same_batches_at_theta():
         tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
     plain = config.build_learner(env=None, spaces=runner.get_spaces())
     plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
-    batches = [[e for t in tasks for e in t.support], *(t.query for t in tasks)]
-    batches = copy.deepcopy(batches)
+    batches = copy.deepcopy([[e for t in tasks for e in t.support]
+                             + [e for t in tasks for e in t.query]])
 
     class Stub:
         def _timesteps(self):

@@ -13,8 +13,8 @@ Then the outer update (``outer``):
     step with the first-order MAML gradient, clipped against the policy that sampled it;
   * ``reptile``: theta += reptile_lr * mean_i(theta''_i - theta), theta''_i being theta'_i
     after one more POCA update on the task's query batch;
-  * ``multitask`` (a control): as ``maml`` with the query batches learned at theta, which
-    is domain randomisation on the same data: what the shift adds is maml - multitask.
+  * ``multitask`` (a control): one ordinary POCA update at theta on all support and query
+    batches together (tasks mixed in every minibatch): domain randomisation on the same data.
 Every sampled env step is learned from, and counted once (the budget is exact).
 
     config = meta_poca_config({"max_steps": 200}, tasks=4, support_steps=800, query_steps=800)
@@ -26,7 +26,6 @@ adapted actors are loaded between support and query sampling.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 from dataclasses import dataclass
 from typing import Any
@@ -193,10 +192,12 @@ class MetaPOCA(POCA):
             return []
         kwargs = learner.update_kwargs(timesteps)
         support = [e for t in tasks for e in t.support]
+        if self.config.outer_rule == "multitask":  # every batch at theta, tasks mixed
+            return [learner.update(episodes=support + [e for t in tasks for e in t.query],
+                                   **kwargs)]
         results = [learner.update(episodes=support, **kwargs)]
-        control = self.config.outer_rule == "multitask"
         for task in tasks:
-            with contextlib.nullcontext() if control else learner.shifted(task.delta):
+            with learner.shifted(task.delta):
                 results.append(learner.update(episodes=task.query, **kwargs))
         return results
 

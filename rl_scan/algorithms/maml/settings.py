@@ -34,7 +34,7 @@ class MetaSettings:
     outer: str = "maml"
     """``maml``: first-order MAML-PPO on support (at theta) and query (at theta + delta)
     batches; ``reptile``: theta += reptile_lr * mean over tasks of delta; ``multitask``
-    (a control): the query batches learned at theta too, i.e. DR on the same data."""
+    (a control): one update at theta on all batches, tasks mixed: DR on the same data."""
     reptile_lr: float = 1.0
     """Reptile's step size epsilon (only with ``outer="reptile"``)."""
 
