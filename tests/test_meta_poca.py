@@ -209,7 +209,7 @@ def test_the_outer_update_takes_epochs_times_minibatches_steps_on_every_batch(mo
 
 def test_a_meta_iteration_learns_from_every_step_it_charges(ray_session):
     """Env steps charged = env steps in the support and query batches = tasks * (S + Q)."""
-    config = meta_poca_config(ENV, tasks=2, support_steps=24, query_steps=12, task_pool=5,
+    config = meta_poca_config(ENV, tasks=2, support_steps=24, query_steps=48, task_pool=5,
                               **TRAINING)
     algo = config.build_algo()
     sampled: list = []
@@ -225,8 +225,8 @@ def test_a_meta_iteration_learns_from_every_step_it_charges(ray_session):
     result = algo.train()
     algo.stop()
     charged = result["env_runners"]["num_env_steps_sampled_lifetime"]
-    assert charged == sum(sampled) == 2 * (24 + 12)
-    assert sampled == [24, 12, 24, 12]
+    assert charged == sum(sampled) == 2 * (24 + 48)
+    assert sampled == [24, 48, 24, 48]
     assert result["meta/delta_norm"] > 0
 
 
@@ -293,6 +293,8 @@ def test_the_multitask_control_learns_the_same_batches_at_theta():
     (dict(support_steps=25), r"meta.support_steps=25 is invalid: allowed a multiple of "
                              r"num_envs_per_env_runner=2"),
     (dict(query_steps=1), r"meta.query_steps=1 is invalid"),
+    (dict(query_steps=22), r"meta.query_steps=22 is invalid: allowed at least max_steps x "
+                           r"num_envs_per_env_runner = 24"),
     (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'reptile', "
                         r"'multitask'\]"),
     (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),
@@ -318,7 +320,7 @@ def test_a_restored_run_draws_the_tasks_the_uninterrupted_run_draws(ray_session,
         real(env_runner, scenario)
 
     monkeypatch.setattr(meta_poca, "set_task", recording)
-    config = meta_poca_config(ENV, tasks=3, support_steps=12, query_steps=12, task_pool=50,
+    config = meta_poca_config(ENV, tasks=3, support_steps=24, query_steps=24, task_pool=50,
                               **{**TRAINING, "seed": 4})
 
     def second_iteration_tasks(algo) -> list[str]:

@@ -101,6 +101,14 @@ class MetaPOCAConfig(POCAConfig):
         check_range("meta.reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
         check_steps_fit(self.support_steps, self.query_steps, self.num_envs_per_env_runner,
                         "meta.")
+        max_steps = int(self.env_config.get("max_steps", 0))
+        for name in ("support_steps", "query_steps"):  # every sample starts fresh episodes
+            steps = getattr(self, name)
+            if steps // self.num_envs_per_env_runner < max_steps:
+                fail(f"meta.{name}", steps, f"at least max_steps x num_envs_per_env_runner = "
+                                            f"{max_steps * self.num_envs_per_env_runner} (each "
+                                            "sample starts fresh episodes: fewer steps per env "
+                                            "would cut every episode short)")
         if self.num_env_runners != 0:
             fail("num_env_runners", self.num_env_runners,
                  "0 (MetaPOCA samples its tasks on the local env runner)")
