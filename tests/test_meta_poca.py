@@ -50,6 +50,28 @@ def _seeded(seed: int = 0) -> None:
     torch.manual_seed(seed)
 
 
+def _outer_update(config, learner, tasks) -> None:
+    """MetaPOCA's outer update on ``tasks`` (it reads only the algorithm's config and
+    timesteps, so no algorithm is built)."""
+    from types import SimpleNamespace
+
+    from rl_scan.algorithms.maml.meta_poca import MetaPOCA
+
+    MetaPOCA._outer_update(SimpleNamespace(config=config, _timesteps=dict), learner, tasks)
+
+
+def _tasks(learner, runner, scenarios=("train:0", "train:1")) -> list:
+    """Tasks with support and query batches and the inner update's delta."""
+    from rl_scan.algorithms.maml.meta_poca import Task
+
+    tasks = []
+    for scenario in scenarios:
+        support = _sample(runner, scenario)
+        delta, _, _ = learner.adapt(support, {})
+        tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
+    return tasks
+
+
 def test_the_inner_update_is_an_ordinary_poca_update_and_leaves_theta_as_it_was():
     _, runner, learner = _setup()
     support = _sample(runner, "train:0")
@@ -180,21 +202,11 @@ def _module_rows(episodes, module_id: str) -> int:
 
 def test_the_outer_update_takes_epochs_times_minibatches_steps_on_every_batch(monkeypatch):
     config, runner, learner = _setup()
-    from rl_scan.algorithms.maml.meta_poca import MetaPOCA, Task
-
-    tasks = []
-    for scenario in ("train:0", "train:1"):
-        support = _sample(runner, scenario)
-        delta, adapted, _ = learner.adapt(support, {})
-        tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
+    tasks = _tasks(learner, runner)
     steps = []
     real = type(learner).apply_gradients
     monkeypatch.setattr(type(learner), "apply_gradients",
                         lambda self, grads: (steps.append(1), real(self, grads))[1])
-
-    class Stub:  # the algorithm's outer update reads only its config and timesteps
-        def _timesteps(self):
-            return {}
 
     def minibatches(episodes) -> int:
         rows = max(_module_rows(episodes, mid) for mid in ("wheeled", "quad"))
@@ -202,8 +214,7 @@ def test_the_outer_update_takes_epochs_times_minibatches_steps_on_every_batch(mo
 
     expected = minibatches([e for t in tasks for e in t.support]) + sum(
         minibatches(t.query) for t in tasks)
-    Stub.config = config
-    MetaPOCA._outer_update(Stub(), learner, tasks)
+    _outer_update(config, learner, tasks)
     assert len(steps) == expected > 2 * config.num_epochs
 
 
@@ -232,24 +243,13 @@ def test_a_meta_iteration_learns_from_every_step_it_charges(ray_session):
 
 def test_reptile_moves_theta_by_the_mean_task_delta():
     config, runner, learner = _setup(outer="reptile", reptile_lr=0.5)
-    from rl_scan.algorithms.maml.meta_poca import MetaPOCA, Task
-
     theta = _state(learner)
-    tasks = []
-    for scenario in ("train:0", "train:1"):
-        support = _sample(runner, scenario)
-        delta, _, _ = learner.adapt(support, {})
-        tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
+    tasks = _tasks(learner, runner)
     _seeded()
     further = [learner.adapt(t.query, {}, 1, start=t.delta)[0] for t in tasks]
 
-    class Stub:
-        def _timesteps(self):
-            return {}
-
-    Stub.config = config
     _seeded()
-    MetaPOCA._outer_update(Stub(), learner, tasks)
+    _outer_update(config, learner, tasks)
     for key, t in _state(learner).items():
         expected = theta[key] + 0.5 * (further[0][key] + further[1][key]) / 2
         torch.testing.assert_close(t, expected, rtol=1e-5, atol=1e-6)
@@ -259,25 +259,14 @@ def test_the_multitask_control_learns_the_same_batches_at_theta():
     """outer='multitask' is one ordinary update at theta on every batch (DR on the same
     data): a standalone learner with the same state making it ends at the same weights."""
     config, runner, learner = _setup(outer="multitask")
-    from rl_scan.algorithms.maml.meta_poca import MetaPOCA, Task
-
-    tasks = []
-    for scenario in ("train:0", "train:1"):
-        support = _sample(runner, scenario)
-        delta, _, _ = learner.adapt(support, {})
-        tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
+    tasks = _tasks(learner, runner)
     plain = config.build_learner(env=None, spaces=runner.get_spaces())
     plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
     batches = copy.deepcopy([[e for t in tasks for e in t.support]
                              + [e for t in tasks for e in t.query]])
 
-    class Stub:
-        def _timesteps(self):
-            return {}
-
-    Stub.config = config
     _seeded()
-    MetaPOCA._outer_update(Stub(), learner, tasks)
+    _outer_update(config, learner, tasks)
     _seeded()
     for episodes in batches:
         plain.update(episodes=episodes, **plain.update_kwargs({}))
