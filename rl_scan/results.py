@@ -55,6 +55,10 @@ LOG_DIR = "logs"  # stderr of every experiment run started in a child process
 ENV_STEPS = "num_env_steps_sampled_lifetime"  # == ray.rllib.utils.metrics' constant (tested)
 ITERATION = "training_iteration"
 TIME_TOTAL = "time_total_s"
+# The run's own training seconds, summed by the driver and carried in its checkpoints: Tune
+# recomputes time_total_s from the checkpoint it restores, so a final result reported again
+# after a restore from an earlier checkpoint would get another time.
+RUN_SECONDS = "rl_scan_run_seconds"
 EVALUATION = "evaluation"
 ENV_RUNNERS = "env_runners"
 EPISODE_RETURN = "episode_return_mean"
@@ -90,7 +94,7 @@ def eval_entry(result: dict[str, Any]) -> dict[str, Any]:
     return {
         ITERATION: result.get(ITERATION, 0),
         "env_steps": result.get(ENV_STEPS),
-        TIME_TOTAL: result.get(TIME_TOTAL),
+        TIME_TOTAL: result.get(RUN_SECONDS, result.get(TIME_TOTAL)),
         EPISODE_RETURN: evaluation.get(EPISODE_RETURN),
         "module_returns": evaluation.get(MODULE_RETURNS, {}),
         **{k[len(SCAN_PREFIX):]: v for k, v in evaluation.items() if k.startswith(SCAN_PREFIX)},

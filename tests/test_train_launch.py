@@ -223,6 +223,9 @@ def test_an_env_error_after_a_checkpoint_is_survived_by_restoring_it(ray_session
     assert iters == [1, 2, 3, 4] and steps == [400, 800, 1200, 1600]
     evals = json.loads((run_dir / R.EVAL_FILE).read_text())
     assert [e["training_iteration"] for e in evals] == [1, 2, 3, 4]
+    # the run's own clock, carried in the checkpoint, is Tune's time across the restore
+    assert [e[R.TIME_TOTAL] for e in evals] == pytest.approx(
+        [float(r[R.TIME_TOTAL]) for r in rows], abs=1e-6)
 
 
 def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(ray_session,

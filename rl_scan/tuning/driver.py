@@ -146,11 +146,11 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
         raise NonFiniteLossError(f"{stopped.read_text()} (not retried: it would recur "
                                  "from the same checkpoint)")
     preset = spec.preset
-    checkpoint = tune.get_checkpoint()
+    checkpoint, saved = tune.get_checkpoint(), {}
     if checkpoint is not None:
         with checkpoint.as_directory() as folder:
-            steps = (R.read_json(Path(folder) / R.CHECKPOINT_STEPS) or {}).get("env_steps", 0)
-        if steps >= preset.total_env_steps:  # restored at its end: nothing left to train
+            saved = R.read_json(Path(folder) / R.CHECKPOINT_STEPS) or {}
+        if saved.get("env_steps", 0) >= preset.total_env_steps:  # restored at its end: nothing left to train
             return  # (a study resumed after its driver died may do this)
         final = final_checkpoint(checkpoint, preset.total_env_steps)
         if final is not None:  # its last report again (a study records its metric once)
@@ -165,10 +165,13 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
         with checkpoint.as_directory() as folder:
             algorithm.restore_from_path(folder)
     nodes = placement(algorithm)
+    seconds = saved.get(R.RUN_SECONDS, 0.0)
     try:
         while True:
             result = algorithm.train()
             it = result[R.ITERATION]
+            seconds += result.get("time_this_iter_s", 0.0)
+            result[R.RUN_SECONDS] = seconds
             # RLlib repeats the last evaluation in later results: mark the fresh ones.
             result[R.EVALUATED] = bool(preset.evaluation_interval and R.evaluation_of(result)
                                        and it % preset.evaluation_interval == 0)
@@ -180,6 +183,7 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
                     algorithm.save_to_path(tmp)
                     R.write_json(Path(tmp) / R.CHECKPOINT_STEPS,
                                  {"env_steps": int(result[R.ENV_STEPS]), R.ITERATION: it,
+                                  R.RUN_SECONDS: seconds,
                                   **({FINAL_RESULT: R.jsonable(result)} if done else {})})
                     tune.report(result, checkpoint=tune.Checkpoint.from_directory(tmp))
             else:
