@@ -255,24 +255,33 @@ def test_reptile_moves_theta_by_the_mean_task_delta():
         torch.testing.assert_close(t, expected, rtol=1e-5, atol=1e-6)
 
 
-def test_the_multitask_control_learns_the_same_batches_at_theta():
+@pytest.mark.parametrize("outer", ["multitask", "maml_dr"])
+def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer):
     """outer='multitask' is one ordinary update at theta on every batch (DR on the same
-    data): a standalone learner with the same state making it ends at the same weights."""
-    config, runner, learner = _setup(outer="multitask")
+    data); 'maml_dr' then adds each task's query update at theta + delta: a standalone
+    learner with the same state making those updates ends at the same weights."""
+    config, runner, learner = _setup(outer=outer)
     tasks = _tasks(learner, runner)
     plain = config.build_learner(env=None, spaces=runner.get_spaces())
     plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
-    batches = copy.deepcopy([[e for t in tasks for e in t.support]
-                             + [e for t in tasks for e in t.query]])
+    mixed = copy.deepcopy([e for t in tasks for e in t.support]
+                          + [e for t in tasks for e in t.query])
+    queries = copy.deepcopy([t.query for t in tasks])
 
     _seeded()
     _outer_update(config, learner, tasks)
     _seeded()
-    for episodes in batches:
-        plain.update(episodes=episodes, **plain.update_kwargs({}))
+    plain.update(episodes=mixed, **plain.update_kwargs({}))
+    after_mixed = {k: t.detach().clone() for k, t in plain.float_state().items()}
+    if outer == "maml_dr":
+        for task, query in zip(tasks, queries):
+            with plain.shifted(task.delta):
+                plain.update(episodes=query, **plain.update_kwargs({}))
     reached = plain.float_state()
     for key, t in learner.float_state().items():
         torch.testing.assert_close(t, reached[key], rtol=1e-5, atol=1e-6)
+    moved = any(not torch.equal(t, after_mixed[k]) for k, t in reached.items())
+    assert moved == (outer == "maml_dr")  # only maml_dr goes on past the mixed update
 
 
 @pytest.mark.parametrize("meta, message", [
@@ -284,8 +293,8 @@ def test_the_multitask_control_learns_the_same_batches_at_theta():
     (dict(query_steps=1), r"meta.query_steps=1 is invalid"),
     (dict(query_steps=22), r"meta.query_steps=22 is invalid: allowed at least max_steps x "
                            r"num_envs_per_env_runner = 24"),
-    (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'reptile', "
-                        r"'multitask'\]"),
+    (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'maml_dr', "
+                        r"'reptile', 'multitask'\]"),
     (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),
     (dict(num_env_runners=1), r"num_env_runners=1"),
 ])

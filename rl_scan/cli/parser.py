@@ -182,8 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
     mt.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
                     help="a meta setting over the preset's: tasks, support_steps, "
                          "query_steps, inner_updates, inner_adam (fresh or meta), outer "
-                         "(maml, reptile, or multitask: the control without the MAML "
-                         "shift), reptile_lr "
+                         "(maml; maml_dr: maml whose update at theta also learns from "
+                         "the query batches; reptile; or multitask: the control without "
+                         "the MAML shift), reptile_lr "
                          "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
     mt.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                     help="warm start from this checkpoint's (or run folder's) weights, "

@@ -11,6 +11,9 @@ Then the outer update (``outer``):
     gradient DR would take from the same data), then per task one on its query batch at
     theta + delta_i (advantages from the adapted critic): each minibatch is one meta-Adam
     step with the first-order MAML gradient, clipped against the policy that sampled it;
+  * ``maml_dr``: as ``maml``, but the update at theta learns from every support and query
+    batch (tasks mixed: the DR update on all the data) before the per-task query updates
+    at theta + delta_i (the MAML term added to DR's objective);
   * ``reptile``: theta += reptile_lr * mean_i(theta''_i - theta), theta''_i being theta'_i
     after one more POCA update on the task's query batch;
   * ``multitask`` (a control): one ordinary POCA update at theta on all support and query
@@ -199,11 +202,14 @@ class MetaPOCA(POCA):
             learner.reptile_step(deltas, self.config.reptile_lr)
             return []
         kwargs = learner.update_kwargs(timesteps)
-        support = [e for t in tasks for e in t.support]
-        if self.config.outer_rule == "multitask":  # every batch at theta, tasks mixed
-            return [learner.update(episodes=support + [e for t in tasks for e in t.query],
-                                   **kwargs)]
-        results = [learner.update(episodes=support, **kwargs)]
+        rule = self.config.outer_rule
+        at_theta = [e for t in tasks for e in t.support]
+        if rule in ("multitask", "maml_dr"):  # every batch at theta, tasks mixed
+            query = [e for t in tasks for e in t.query]
+            at_theta += query if rule == "multitask" else copy.deepcopy(query)
+        results = [learner.update(episodes=at_theta, **kwargs)]
+        if rule == "multitask":
+            return results
         for task in tasks:
             with learner.shifted(task.delta):
                 results.append(learner.update(episodes=task.query, **kwargs))

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from rl_scan.config import check_range, fail
 from rl_scan.envs.sim.scenarios import N_TRAIN
 
-OUTER_RULES = ("maml", "reptile", "multitask")
+OUTER_RULES = ("maml", "maml_dr", "reptile", "multitask")
 INNER_ADAM = ("fresh", "meta")
 
 
@@ -33,7 +33,8 @@ class MetaSettings:
     ``meta`` (a copy of the meta optimizer's moments: the inner steps continue its scale)."""
     outer: str = "maml"
     """``maml``: first-order MAML-PPO on support (at theta) and query (at theta + delta)
-    batches; ``reptile``: theta += reptile_lr * mean over tasks of delta; ``multitask``
+    batches; ``maml_dr``: the same with the update at theta on every batch (DR's update
+    on all the data plus the MAML term); ``reptile``: theta += reptile_lr * mean over tasks of delta; ``multitask``
     (a control): one update at theta on all batches, tasks mixed: DR on the same data."""
     reptile_lr: float = 1.0
     """Reptile's step size epsilon (only with ``outer="reptile"``)."""
