@@ -150,8 +150,8 @@ def train_run(params: dict[str, Any], *, spec: RunSpec, study: str | None = None
     if checkpoint is not None:
         with checkpoint.as_directory() as folder:
             saved = R.read_json(Path(folder) / R.CHECKPOINT_STEPS) or {}
-        if saved.get("env_steps", 0) >= preset.total_env_steps:  # restored at its end: nothing left to train
-            return  # (a study resumed after its driver died may do this)
+        if saved.get("env_steps", 0) >= preset.total_env_steps:
+            return  # restored at its end: nothing left to train (a resumed study may)
         final = final_checkpoint(checkpoint, preset.total_env_steps)
         if final is not None:  # its last report again (a study records its metric once)
             with tempfile.TemporaryDirectory() as tmp:  # Tune may persist it under its name

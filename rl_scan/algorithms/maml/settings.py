@@ -34,8 +34,9 @@ class MetaSettings:
     outer: str = "maml"
     """``maml``: first-order MAML-PPO on support (at theta) and query (at theta + delta)
     batches; ``maml_dr``: the same with the update at theta on every batch (DR's update
-    on all the data plus the MAML term); ``reptile``: theta += reptile_lr * mean over tasks of delta; ``multitask``
-    (a control): one update at theta on all batches, tasks mixed: DR on the same data."""
+    on all the data plus the MAML term); ``reptile``: theta += reptile_lr * mean over
+    tasks of delta; ``multitask`` (a control): one update at theta on all batches, tasks
+    mixed: DR on the same data."""
     reptile_lr: float = 1.0
     """Reptile's step size epsilon (only with ``outer="reptile"``)."""
 
