@@ -344,13 +344,14 @@ def test_a_meta_iteration_spends_its_settings_steps_and_the_budget_is_a_whole_nu
 
     budget = {"total_env_steps": 100_000}
     meta = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget)
-    assert meta.settings.env_steps_per_iteration() == 5 * (2_000 + 2_000)
-    assert meta.iterations == 5
+    assert meta.settings.env_steps_per_iteration() == 1 * (2_000 + 2_000)  # DR's batch
+    assert (meta.settings.outer, meta.settings.inner_adam) == ("maml_dr", "meta")
+    assert meta.iterations == 25
     assert make_run_spec("poca", {}, "quick", preset_overrides=budget).iterations == 25
     assert make_run_spec("meta-poca", {}, "paper").iterations == 40  # 8M / 200k
     reptile = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget,
                             settings_overrides={"outer": "reptile", "query_steps": 3_000})
-    assert reptile.settings.outer == "reptile" and reptile.iterations == 4  # 25k each
+    assert reptile.settings.outer == "reptile" and reptile.iterations == 20  # 5k each
     assert reptile.metadata()["algo_settings"]["query_steps"] == 3_000
 
 
@@ -359,7 +360,9 @@ def test_meta_poca_evaluates_and_checkpoints_at_the_presets_env_step_spacing():
 
     quick = make_run_spec("poca", {}, "quick").preset  # every 5 x 4,000 env steps
     assert (quick.evaluation_interval, quick.checkpoint_frequency) == (5, 5)
-    meta = make_run_spec("meta-poca", {}, "quick").preset  # 20,000 per meta-iteration
-    assert (meta.evaluation_interval, meta.checkpoint_frequency) == (1, 1)
+    meta = make_run_spec("meta-poca", {}, "quick").preset  # 4,000 per meta-iteration
+    assert (meta.evaluation_interval, meta.checkpoint_frequency) == (5, 5)
+    five = make_run_spec("meta-poca", {}, "quick", settings_overrides={"tasks": 5}).preset
+    assert (five.evaluation_interval, five.checkpoint_frequency) == (1, 1)  # 20,000 each
     paper = make_run_spec("meta-poca", {}, "paper").preset  # 102,400 vs 200,000: at least 1
     assert paper.evaluation_interval == 1

@@ -83,5 +83,9 @@ def check_steps_fit(support_steps: int, query_steps: int, envs: int, prefix: str
 
 # Smaller task batches for the short presets (the defaults are the paper's: 200k env steps
 # per meta-iteration). Each divides its presets' budgets (smoke 800, quick 100k-1M).
+# quick: one task of one episode per env each for support and query = 4k env steps, DR's
+# batch, with the DR update on all of it (maml_dr) and inner steps that continue the meta
+# Adam: the variant that meta-trains as fast as DR per env step (docs/DESIGN.md, #16).
 PRESET_SETTINGS = {"smoke": dict(tasks=2, support_steps=100, query_steps=100),
-                   "quick": dict(tasks=5, support_steps=2_000, query_steps=2_000)}
+                   "quick": dict(tasks=1, support_steps=2_000, query_steps=2_000,
+                                 outer="maml_dr", inner_adam="meta")}
