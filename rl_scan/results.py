@@ -41,6 +41,7 @@ PROGRESS_FILE = "progress.csv"  # Tune's, one row per iteration
 STUDY_FILE = "study.yaml"
 OPTUNA_DB = "optuna.db"
 PROTOCOL_FILE = "protocol.yaml"  # a meta-MRSS experiment's plan (methods, tests, seeds, runs)
+HETERO_MAP = "hetero_map.json"  # a hetero-map study's points (greedy coverages per team)
 PRETRAIN_DIR, ADAPT_DIR = "pretrain", "adapt"
 SUMMARY_FILE, TABLE_FILE = "summary.json", "table.md"
 DONE = "DONE"  # a finished run of an experiment (skipped when the experiment is re-run)

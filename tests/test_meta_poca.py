@@ -255,12 +255,14 @@ def test_reptile_moves_theta_by_the_mean_task_delta():
         torch.testing.assert_close(t, expected, rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.parametrize("outer", ["multitask", "maml_dr"])
-def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer):
+@pytest.mark.parametrize("outer, weight", [("multitask", 1.0), ("maml_dr", 1.0),
+                                           ("maml_dr", 0.5), ("maml_dr", 0.0)])
+def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer, weight):
     """outer='multitask' is one ordinary update at theta on every batch (DR on the same
-    data); 'maml_dr' then adds each task's query update at theta + delta: a standalone
-    learner with the same state making those updates ends at the same weights."""
-    config, runner, learner = _setup(outer=outer)
+    data); 'maml_dr' then adds each task's query update at theta + delta at lr x
+    maml_weight: a standalone learner with the same state making those updates ends at
+    the same weights."""
+    config, runner, learner = _setup(outer=outer, maml_weight=weight)
     tasks = _tasks(learner, runner)
     plain = config.build_learner(env=None, spaces=runner.get_spaces())
     plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
@@ -273,15 +275,18 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer)
     _seeded()
     plain.update(episodes=mixed, **plain.update_kwargs({}))
     after_mixed = {k: t.detach().clone() for k, t in plain.float_state().items()}
-    if outer == "maml_dr":
+    if outer == "maml_dr" and weight > 0:
         for task, query in zip(tasks, queries):
+            for optimizer in plain._named_optimizers.values():
+                optimizer.param_groups[0]["lr"] = config.lr * weight  # RLlib resets it after
             with plain.shifted(task.delta):
                 plain.update(episodes=query, **plain.update_kwargs({}))
     reached = plain.float_state()
     for key, t in learner.float_state().items():
         torch.testing.assert_close(t, reached[key], rtol=1e-5, atol=1e-6)
     moved = any(not torch.equal(t, after_mixed[k]) for k, t in reached.items())
-    assert moved == (outer == "maml_dr")  # only maml_dr goes on past the mixed update
+    assert moved == (outer == "maml_dr" and weight > 0)  # the MAML term goes on past it
+    assert {o.param_groups[0]["lr"] for o in learner._named_optimizers.values()} == {config.lr}
 
 
 @pytest.mark.parametrize("meta, message", [
@@ -296,6 +301,7 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer)
     (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'maml_dr', "
                         r"'reptile', 'multitask'\]"),
     (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),
+    (dict(maml_weight=-0.5), r"meta.maml_weight=-0.5 is invalid"),
     (dict(num_env_runners=1), r"num_env_runners=1"),
 ])
 def test_bad_meta_settings_fail_before_building(meta, message):

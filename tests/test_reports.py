@@ -342,3 +342,26 @@ def test_meta_training_diagnostics_are_tabled_per_run(tmp_path):
     lines = meta_lines([RunRecord("meta-mrss/pretrain", "meta-mrss", 0, run), plain])
     assert lines[-1] == "| meta-mrss_s0 | 2 | +15.0 | 2 |"  # gains .1, .2; norms 1, 3
     assert meta_lines([plain]) == []
+
+
+def test_a_hetero_map_alone_makes_a_report_with_its_heatmap_and_winning_region(tmp_path):
+    def point(sensor, budget, mixed, quads, wheeled):
+        return {"params": {"wheeled_sensor": sensor, "quad_speed": 0.1, "quad_range": 3.5,
+                           "flight_time": budget},
+                "value": mixed - max(quads, wheeled), "final": {"mixed": 1.0, "quads": 1.0,
+                                                                 "wheeled": 0.5},
+                "mean": {"mixed": mixed, "quads": quads, "wheeled": wheeled}}
+
+    study = tmp_path / "map"
+    study.mkdir()
+    (study / R.HETERO_MAP).write_text(json.dumps({
+        "axes": {"wheeled_sensor": ["fan", "sphere"], "quad_speed": [0.1],
+                 "quad_range": [3.5], "flight_time": [0.0, 100.0]},
+        "teams": {"mixed": [2, 2], "quads": [0, 4], "wheeled": [4, 0]},
+        "scenes": ["train:0", "train:1"],
+        "points": [point("fan", 0.0, 0.80, 0.85, 0.5), point("fan", 100.0, 0.75, 0.60, 0.5),
+                   point("sphere", 0.0, 0.82, 0.85, 0.6)]}))
+    md = (build_report(tmp_path) / "report.md").read_text()
+    assert "The mixed team wins at **1 of 3** points; largest margin +15.0 points" in md
+    assert "| fan | 0.1 | 3.5 | 100.0 | 75.0 | 60.0 | 50.0 | +15.0 |" in md
+    assert (tmp_path / "report" / "figures" / "hetero_map_map.png").stat().st_size > 0

@@ -101,3 +101,31 @@ def test_same_seed_same_episode_different_seed_different():
     a, b, c = episode(5), episode(5), episode(6)
     assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
     assert not np.array_equal(a[0], c[0])  # start jitter depends on the seed
+
+
+@pytest.mark.parametrize("budget", [20 * DT, 0.0])
+def test_a_quad_out_of_flight_time_holds_still_and_scans_nothing(budget):
+    """quad_flight_time = 20 steps: quads fly and scan 20 steps, then hold their place and
+    scan nothing while the wheeled robots go on; 0 (the default) is no limit."""
+    from rl_scan.envs.heuristics import GreedyTeam
+
+    core = ScanCore({"scenario": "train:3", "quad_flight_time": budget, "dt": DT})
+    obs = core.reset(seed=0)
+    w, greedy = core.world, GreedyTeam(core)
+    quads = w.kind == QUAD
+    scanned = {"flying": 0, "landed": 0}
+    moved_after = np.zeros(w.n_robots, dtype=bool)
+    for t in range(60):
+        pos = w.pos.copy()
+        obs, *_ = core.step(greedy.act(obs))
+        phase = "flying" if t < 20 else "landed"
+        scanned[phase] += int(w.new_cells[quads].sum())
+        if t >= 20:
+            moved_after |= np.any(w.pos != pos, axis=1)
+    assert scanned["flying"] > 0
+    assert moved_after[~quads].any()
+    if budget:
+        assert scanned["landed"] == 0 and not moved_after[quads].any()
+        assert not w.scanning[quads].any() and w.scanning[~quads].all()
+    else:
+        assert scanned["landed"] > 0 and moved_after[quads].any()

@@ -335,6 +335,14 @@ def experiment_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def hetero_map_cmd(args: argparse.Namespace) -> int:
+    from rl_scan.tuning.hetero import hetero_map
+
+    folder = hetero_map(args.results, args.name, scenes=args.scenes, resume=args.resume)
+    print(f"done: {folder}  (optuna-dashboard sqlite:///{folder / OPTUNA_DB})")
+    return 0
+
+
 def ablate_cmd(args: argparse.Namespace) -> int:
     from rl_scan.cli.env_args import env_mapping_from_args
     from rl_scan.tuning.ablate import ablate

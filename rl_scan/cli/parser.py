@@ -184,7 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "query_steps, inner_updates, inner_adam (fresh or meta), outer "
                          "(maml; maml_dr: maml whose update at theta also learns from "
                          "the query batches; reptile; or multitask: the control without "
-                         "the MAML shift), reptile_lr "
+                         "the MAML shift), reptile_lr, maml_weight (the MAML term's "
+                         "lr as a fraction of POCA's) "
                          "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
     mt.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                     help="warm start from this checkpoint's (or run folder's) weights, "
@@ -286,6 +287,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sampler_arg(mm)
     _add_resources_arg(mm)
     mm.set_defaults(func=commands.experiment_cmd)
+
+    hm = ex_sub.add_parser(
+        "hetero-map", formatter_class=fmt,
+        help="where 2 wheeled + 2 quads beat a homogeneous team (scripted greedy team)",
+        description="An Optuna study (SQLite in the study folder) over the simulator's "
+                    "assumed parameters that the paper leaves open: the wheeled sensor's "
+                    "elevations (fan or sphere), quad speed and sensor range, and a quad "
+                    "flight-time budget. At each of the 32 grid points the scripted greedy "
+                    "team plays the same train scenes as 2 + 2, 0 + 4 and 4 + 0; the point's "
+                    "value is mixed minus best homogeneous coverage. Re-running resumes "
+                    "(finished points are kept); `rl-scan report` draws the map.")
+    hm.add_argument("--scenes", type=int, default=8,
+                    help="train scenes (train:0 ..) each team plays at every point")
+    hm.add_argument("--results", default="results")
+    hm.add_argument("--name", default="hetero-map")
+    hm.add_argument("--resume", action="store_true", help="continue the study named --name")
+    hm.set_defaults(func=commands.hetero_map_cmd)
 
     ev = sub.add_parser(
         "evaluate", formatter_class=fmt, help="metrics of a trained team",

@@ -38,6 +38,7 @@ from rl_scan.reports.collect import (
     runs_file,
 )
 from rl_scan.reports.figures import CONVERGED, plot_curves
+from rl_scan.reports.hetero_map import hetero_map_lines
 from rl_scan.reports.html import to_html
 from rl_scan.reports.stats import (
     iqm,
@@ -323,7 +324,8 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
     out = Path(out_dir).resolve() if out_dir else results_dir / "report"
     (out / "figures").mkdir(parents=True, exist_ok=True)
     data: Collection = collect(results_dir)
-    if not data.runs:
+    maps = hetero_map_lines(results_dir, out / "figures")
+    if not data.runs and not maps:
         raise ValueError(f"results_dir={str(results_dir)!r} holds no rl-scan runs or studies")
     if compare is not None:
         add_comparison(data, compare)
@@ -382,6 +384,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
             md += [f"| {r.path.name} | {r.env_steps:,} | {_fmt(r.time_total_s, False)} s | "
                    f"{_fmt(r.env_steps_per_s, False)} |" for r in runs]
         md.append("")
+    md += maps
     hw = hardware()
     md += ["## Compute", "", "| item | value |", "|---|---|"]
     md += [f"| {k} | {v} |" for k, v in hw.items()]

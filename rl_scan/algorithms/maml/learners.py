@@ -10,6 +10,7 @@
                 first-order MAML gradient (d L(theta + delta) / d theta with delta held
                 constant: what ``torch.func.functional_call`` at theta + delta gives),
                 with no second copy of the modules.
+``lr_scaled``   every optimizer's lr times a factor for a block (the MAML term's weight).
 ``reptile_step`` theta += epsilon * mean over tasks of delta.
 
 Return statistics (the critic's PopArt moments) belong to the meta-learner: the outer
@@ -94,6 +95,20 @@ class MetaPOCALearner(POCATorchLearner):
             with torch.no_grad():
                 for key, p in params.items():
                     p.sub_(delta[key])
+
+    @contextmanager
+    def lr_scaled(self, factor: float) -> Iterator[None]:
+        """Every optimizer's lr times ``factor`` inside the block (RLlib sets the lr back
+        from its schedule after each update; the block's end restores it as well)."""
+        optimizers = list(self._named_optimizers.values())
+        saved = [self._get_optimizer_lr(opt) for opt in optimizers]
+        for opt, lr in zip(optimizers, saved):
+            self._set_optimizer_lr(opt, lr * factor)
+        try:
+            yield
+        finally:
+            for opt, lr in zip(optimizers, saved):
+                self._set_optimizer_lr(opt, lr)
 
     @torch.no_grad()
     def reptile_step(self, deltas: list[dict[Key, torch.Tensor]], epsilon: float) -> None:

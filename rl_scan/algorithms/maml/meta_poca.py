@@ -14,6 +14,7 @@ Then the outer update (``outer``):
   * ``maml_dr``: as ``maml``, but the update at theta learns from every support and query
     batch (tasks mixed: the DR update on all the data) before the per-task query updates
     at theta + delta_i (the MAML term added to DR's objective);
+  (``maml_weight`` scales the lr of the updates at theta + delta_i: the MAML term's weight);
   * ``reptile``: theta += reptile_lr * mean_i(theta''_i - theta), theta''_i being theta'_i
     after one more POCA update on the task's query batch;
   * ``multitask`` (a control): one ordinary POCA update at theta on all support and query
@@ -69,20 +70,21 @@ class MetaPOCAConfig(POCAConfig):
         self.inner_adam = "fresh"
         self.outer_rule = "maml"
         self.reptile_lr = 1.0
+        self.maml_weight = 1.0
         self.task_pool = N_TRAIN
 
     def meta(self, *, tasks: int = NotProvided, support_steps: int = NotProvided,
              query_steps: int = NotProvided, inner_updates: int = NotProvided,
              inner_adam: str = NotProvided,
              outer: str = NotProvided, reptile_lr: float = NotProvided,
-             task_pool: int = NotProvided) -> MetaPOCAConfig:
+             maml_weight: float = NotProvided, task_pool: int = NotProvided) -> MetaPOCAConfig:
         """Meta settings (``MetaSettings`` documents each); ``task_pool``: tasks are drawn
         from ``train:0`` .. ``train:{task_pool - 1}``."""
         for name, value in (("meta_tasks", tasks), ("support_steps", support_steps),
                             ("query_steps", query_steps), ("inner_updates", inner_updates),
                             ("inner_adam", inner_adam),
                             ("outer_rule", outer), ("reptile_lr", reptile_lr),
-                            ("task_pool", task_pool)):
+                            ("maml_weight", maml_weight), ("task_pool", task_pool)):
             if value is not NotProvided:
                 setattr(self, name, value)
         return self
@@ -102,6 +104,7 @@ class MetaPOCAConfig(POCAConfig):
         if self.outer_rule not in OUTER_RULES:
             fail("meta.outer", self.outer_rule, f"one of {list(OUTER_RULES)}")
         check_range("meta.reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
+        check_range("meta.maml_weight", self.maml_weight, 0.0, 10.0)
         check_steps_fit(self.support_steps, self.query_steps, self.num_envs_per_env_runner,
                         "meta.")
         max_steps = int(self.env_config.get("max_steps", 0))
@@ -208,10 +211,10 @@ class MetaPOCA(POCA):
             query = [e for t in tasks for e in t.query]
             at_theta += query if rule == "multitask" else copy.deepcopy(query)
         results = [learner.update(episodes=at_theta, **kwargs)]
-        if rule == "multitask":
+        if rule == "multitask" or self.config.maml_weight == 0:
             return results
         for task in tasks:
-            with learner.shifted(task.delta):
+            with learner.shifted(task.delta), learner.lr_scaled(self.config.maml_weight):
                 results.append(learner.update(episodes=task.query, **kwargs))
         return results
 
@@ -241,7 +244,7 @@ def delta_norm(learner: MetaPOCALearner, delta: dict[Key, torch.Tensor]) -> floa
 def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, tasks: int = 10,
                      support_steps: int = 10_000, query_steps: int = 10_000,
                      inner_updates: int = 1, inner_adam: str = "fresh", outer: str = "maml",
-                     reptile_lr: float = 1.0,
+                     reptile_lr: float = 1.0, maml_weight: float = 1.0,
                      task_pool: int = N_TRAIN, train_batch_size: int = 4_000,
                      minibatch_size: int = 1_024, **poca_kwargs: Any) -> MetaPOCAConfig:
     """MetaPOCAConfig for the scanning env: POCA's settings (its minibatch size and epochs
@@ -252,5 +255,5 @@ def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, tasks: int = 10,
                          minibatch_size=minibatch_size, **poca_kwargs)
     return config.meta(tasks=tasks, support_steps=support_steps, query_steps=query_steps,
                        inner_updates=inner_updates, inner_adam=inner_adam, outer=outer,
-                       reptile_lr=reptile_lr,
+                       reptile_lr=reptile_lr, maml_weight=maml_weight,
                        task_pool=task_pool)

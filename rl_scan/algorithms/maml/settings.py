@@ -39,6 +39,10 @@ class MetaSettings:
     mixed: DR on the same data."""
     reptile_lr: float = 1.0
     """Reptile's step size epsilon (only with ``outer="reptile"``)."""
+    maml_weight: float = 1.0
+    """The MAML term's step size as a fraction of POCA's lr (``maml``, ``maml_dr``): the
+    per-task query updates at theta + delta run with lr x maml_weight (with Adam the
+    length of their steps); 0 leaves only the update at theta."""
 
     def validate(self, prefix: str = "") -> None:
         check_range(prefix + "tasks", self.tasks, 1, N_TRAIN)  # distinct train scenarios
@@ -50,6 +54,7 @@ class MetaSettings:
         if self.outer not in OUTER_RULES:
             fail(prefix + "outer", self.outer, f"one of {list(OUTER_RULES)}")
         check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
+        check_range(prefix + "maml_weight", self.maml_weight, 0.0, 10.0)
 
     def fit_preset(self, preset, prefix: str = ""):
         """The training preset as a MetaPOCA run uses it: support and query steps that fill

@@ -65,6 +65,11 @@ class EnvConfig:
     """Voxel edge in metres (assumed)."""
     start_jitter: float = 0.5
     """Uniform noise (metres, per axis) on start positions at each reset (assumed); 0 = fixed."""
+    quad_flight_time: float = 0.0
+    """Seconds a quad can fly per episode; 0 = unlimited (the default, as in the paper).
+    *Assumed* (ours: the paper gives flight no cost): a quad whose time is spent lands
+    where it is, holds that place and scans nothing for the rest of the episode (the
+    landing manoeuvre itself is not modelled; its rays still observe)."""
     fault_at_step: int = 0
     """Testing fault tolerance: raise an error at this step of the env's life, counted over
     all its episodes (0 = never), so a fault can land after a run's first checkpoint..."""
@@ -93,6 +98,7 @@ class EnvConfig:
                 fail(f"{prefix}arena.{axis}", self.arena[i],
                      f"a multiple of cell_size={self.cell_size}")
         check_range(prefix + "start_jitter", self.start_jitter, 0.0, 2.0)
+        check_range(prefix + "quad_flight_time", self.quad_flight_time, 0.0)
         check_range(prefix + "fault_at_step", self.fault_at_step, 0)
         if self.fault_kind not in ("raise", "nan_reward"):
             fail(prefix + "fault_kind", self.fault_kind, "'raise' or 'nan_reward'")

@@ -30,8 +30,8 @@ HIT_ROBOT = min(MISS, BOUNDARY) - 1  # hit code of a robot sphere, beside cast_r
 def sense(grid, objects, team, state, buffers, scan):
     """Cast all rays, write ray blocks to ``obs[i, :n_rays * RAY_FEATURES]``, count new cells.
 
-    Each ray scans (with ``scan``) the cell it hits first and marks the hit object as seen
-    (by a quad too, for the object channel).
+    Each ray of a scanning robot (``scan`` and ``state.scanning``) scans the cell it hits
+    first; every ray marks the hit object as seen (by a quad too, for the object channel).
     """
     pos, yaw, pitch, radius = state.pos, state.yaw, state.pitch, team.radius
     cell_state, obs, new_cells = state.cell_state, buffers.obs, buffers.new_cells
@@ -43,6 +43,7 @@ def sense(grid, objects, team, state, buffers, scan):
         cp, sp = math.cos(pitch[i]), math.sin(pitch[i])
         ox, oy, oz = pos[i, 0], pos[i, 1], pos[i, 2]
         rng = team.sensor_range[k]
+        scans = scan and state.scanning[i] != 0
         new_cells[i] = 0
         n_near = 0  # only robots within reach of this fan are tested per ray
         for o in range(n):
@@ -82,7 +83,7 @@ def sense(grid, objects, team, state, buffers, scan):
                     tag = TAG_SCANNED
                 else:
                     tag = TAG_UNSCANNED
-                    if scan:
+                    if scans:
                         cell_state[c] = 1
                         state.obj_left[obj] -= 1
                         new_cells[i] += 1

@@ -64,6 +64,8 @@ class State(NamedTuple):
     """(objects,) uint8, 1 = some ray has hit the object."""
     obj_seen_by_quad: np.ndarray
     """(objects,) uint8, 1 = some quad's ray has hit it (the object channel reports these)."""
+    scanning: np.ndarray
+    """(n,) uint8, 1 = the robot's rays scan cells (0: a quad landed, its flight time spent)."""
 
 
 class ObsColumns(NamedTuple):
@@ -172,6 +174,7 @@ class World:
     yaw, pitch = _alias("state", "yaw"), _alias("state", "pitch")
     cell_state, obj_left = _alias("state", "cell_state"), _alias("state", "obj_left")
     obj_seen, obj_seen_by_quad = _alias("state", "obj_seen"), _alias("state", "obj_seen_by_quad")
+    scanning = _alias("state", "scanning")
     obs, new_cells = _alias("buffers", "obs"), _alias("buffers", "new_cells")
     collided = _alias("buffers", "collided")
 
@@ -192,7 +195,12 @@ class World:
                            cell_state=np.zeros(len(self.cells), dtype=np.uint8),
                            obj_left=self.objects.n_cells.copy(),
                            obj_seen=np.zeros(self.n_objects, dtype=np.uint8),
-                           obj_seen_by_quad=np.zeros(self.n_objects, dtype=np.uint8))
+                           obj_seen_by_quad=np.zeros(self.n_objects, dtype=np.uint8),
+                           scanning=np.ones(n, dtype=np.uint8))
+        self.steps_taken = 0
+        # steps a quad flies per episode (None: unlimited)
+        self.flight_steps = (int(config.quad_flight_time // config.dt)
+                             if config.quad_flight_time > 0 else None)
         width = max(self.layout.dims.values())
         self.buffers = Buffers(actions=np.zeros((n, ACTION_WIDTH)),
                                obs=np.zeros((n, width), dtype=np.float32),
@@ -288,6 +296,8 @@ class World:
         state.obj_left[:] = self.objects.n_cells
         state.obj_seen[:] = 0
         state.obj_seen_by_quad[:] = 0
+        state.scanning[:] = 1
+        self.steps_taken = 0
         self.buffers.collided[:] = 0
         self._run(np.zeros((n, ACTION_WIDTH)), move=False, scan=False)
         return self.buffers.obs
@@ -311,10 +321,20 @@ class World:
     def step(self, actions: np.ndarray) -> np.ndarray:
         """Advance one step with actions (n_robots, ACTION_WIDTH) in [-1, 1]; returns obs."""
         self._run(actions, move=True, scan=True)
+        self.steps_taken += 1
         return self.buffers.obs
+
+    def _land_spent_quads(self, actions: np.ndarray) -> None:
+        """Past the flight budget quads hold still and stop scanning (``quad_flight_time``)."""
+        if self.flight_steps is not None and self.steps_taken >= self.flight_steps:
+            quads = self.team.kind == QUAD
+            actions[quads] = 0.0
+            self.state.scanning[quads] = 0
 
     def _run(self, actions: np.ndarray, move: bool, scan: bool) -> None:
         self.buffers.actions[:] = actions
+        if move:
+            self._land_spent_quads(self.buffers.actions)
         step_world_fields(self._fields, self.config.dt, move, scan)
 
     @property
