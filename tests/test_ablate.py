@@ -65,12 +65,18 @@ def test_a_study_can_run_a_subset_of_its_conditions():
     assert study.conditions == ("ppo/team", "poca/team")  # order kept, repeats dropped
     assert search_space(study, 3)[2] == 6
     assert only_conditions(STUDIES["team"], None) is STUDIES["team"]
+    # the command line's string; the team study's conditions hold commas themselves
+    assert only_conditions(STUDIES["team"], "2,2,0,4").conditions == ("2,2", "0,4")
+    assert only_conditions(STUDIES["reward"], "poca/team,ppo/team").conditions == (
+        "poca/team", "ppo/team")
 
 
 @pytest.mark.parametrize("argv, message", [
     (["ablate", "reward", "--conditions", "poca/team,poca/teem"],
      "conditions='poca/teem' is invalid: allowed conditions of reward: poca/individual"),
     (["ablate", "hpo", "--conditions", "x"], "conditions='x' is invalid: allowed none: hpo"),
+    (["ablate", "team", "--conditions", "2,2,3,1"],
+     "conditions='3,1' is invalid: allowed conditions of team: 2,2; 0,4; 4,0"),
 ])
 def test_unknown_conditions_are_named_before_ray_starts(tmp_path, capsys, argv, message):
     code = main([*argv, "--preset", "smoke", "--results", str(tmp_path)])

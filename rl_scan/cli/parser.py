@@ -219,10 +219,10 @@ def build_parser() -> argparse.ArgumentParser:
     ab.add_argument("--seeds", type=int, default=3, help="seeds per condition (grid studies)")
     ab.add_argument("--trials", type=int, default=8,
                     help="trials of a search study (hpo); grid studies run condition x seed")
-    ab.add_argument("--conditions", type=lambda v: [c for c in v.split(",") if c],
-                    default=None, metavar="A,B",
+    ab.add_argument("--conditions", default=None, metavar="A,B",
                     help="run only these conditions of a grid study (default: all), e.g. "
-                         "reward --conditions poca/team,ppo/team")
+                         "reward --conditions poca/team,ppo/team or team --conditions "
+                         "2,2,0,4")
     ab.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
     add_env_args(ab)
     ab.set_defaults(func=commands.ablate_cmd)

@@ -9,7 +9,8 @@ Greedy team, per robot and step:
    any), not within ``spread`` m of a teammate's target. Nothing known: visit the
    nearest unvisited waypoint of a 3 x 3 tour of the arena.
 3. Motion: fly/drive at full speed to the target's viewpoint (outside the face, along its
-   normal; above top cells), facing and pitching towards the cell. A move that would
+   normal; above top cells), facing and pitching towards the cell (touring quads pitch
+   down: ``TOUR_PITCH``). A move that would
    collide is replaced by the first free heading rotated away from it (a bug-style
    sidestep with a per-robot turning side that flips when stuck). Quads cross objects
    above their tops.
@@ -27,6 +28,8 @@ from rl_scan.envs.sim.dynamics import COLLIDE_NONE, SUBSTEP_RADII, collision_at
 from rl_scan.envs.sim.robots import QUAD, WHEELED
 
 TURNS = np.radians([0, 30, 60, 90, 120, 150, 180])
+TOUR_PITCH = math.radians(-45.0)  # a touring quad's pitch: at cruise height a level fan
+# (-30..30 degrees, 3.5 m) reaches no lower than ~1.7 m below it and misses low objects
 
 
 class GreedyTeam:
@@ -156,8 +159,8 @@ class GreedyTeam:
                 want_pitch = math.atan2(look[2] - pos[2], horiz)
                 lo, hi = np.radians(spec.pitch_limits)
                 want_pitch = float(np.clip(want_pitch, lo, hi))
-            else:
-                want_pitch = 0.0
+            else:  # touring above the objects: look down, or the fan sees nothing below it
+                want_pitch = float(np.clip(TOUR_PITCH, *np.radians(spec.pitch_limits)))
             a_pitch = float(np.clip((want_pitch - w.pitch[i]) / (spec.max_pitch_rate * dt),
                                     -1, 1))
         step = min(dist_xy, spec.max_speed * dt)

@@ -32,6 +32,17 @@ from rl_scan.tuning.driver import (
 from rl_scan.tuning.launch import check_output_folder, check_resources, init_ray
 
 
+def split_conditions(text: str, known: Sequence[str]) -> list[str]:
+    """``text`` split at commas, rejoining neighbours that make a known condition
+    ("2,2,0,4" -> ["2,2", "0,4"] for the team study)."""
+    parts, out, i = [p for p in text.split(",") if p], [], 0
+    while i < len(parts):
+        j = next((j for j in range(len(parts), i, -1) if ",".join(parts[i:j]) in known), i + 1)
+        out.append(",".join(parts[i:j]))
+        i = j
+    return out
+
+
 def resumable_optuna_search(**kwargs):
     """Ray's OptunaSearch, leaving an Optuna trial alone once Optuna has it finished.
 
@@ -71,8 +82,13 @@ def search_space(study: Study, seeds: int):
     return space, optuna.samplers.TPESampler(seed=0), None
 
 
-def only_conditions(study: Study, conditions: Sequence[str] | None) -> Study:
-    """The study restricted to ``conditions`` (checked against its own; order kept)."""
+def only_conditions(study: Study, conditions: str | Sequence[str] | None) -> Study:
+    """The study restricted to ``conditions`` (checked against its own; order kept).
+
+    A string is the command line's comma-separated list; conditions that hold commas
+    themselves (the team study's "2,2") are matched whole."""
+    if isinstance(conditions, str):
+        conditions = split_conditions(conditions, study.conditions)
     if not conditions:
         return study
     if not study.is_grid:
@@ -80,7 +96,7 @@ def only_conditions(study: Study, conditions: Sequence[str] | None) -> Study:
     unknown = [c for c in conditions if c not in study.conditions]
     if unknown:
         fail("conditions", ",".join(unknown), f"conditions of {study.name}: "
-             + ", ".join(study.conditions))
+             + "; ".join(study.conditions))
     return dataclasses.replace(study, conditions=tuple(dict.fromkeys(conditions)))
 
 
@@ -89,7 +105,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
            address: str | None = None, resume: bool = False,
            env_config: dict[str, Any] | None = None,
            preset_overrides: dict[str, Any] | None = None,
-           conditions: Sequence[str] | None = None, console=None) -> Path:
+           conditions: str | Sequence[str] | None = None, console=None) -> Path:
     """Run (or resume) one ablation study; returns its folder.
 
     ``conditions`` runs a subset of a grid study's conditions (all by default), e.g. only
