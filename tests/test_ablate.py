@@ -87,6 +87,7 @@ def test_unknown_conditions_are_named_before_ray_starts(tmp_path, capsys, argv, 
 def test_grid_size_is_conditions_times_seeds():
     assert search_space(STUDIES["comm"], 3)[2] == 24
     assert search_space(STUDIES["team"], 2)[2] == 6
+    assert search_space(STUDIES["team"], 2, first_seed=3)[0]["seed"].choices == (3, 4)
     assert search_space(STUDIES["hpo"], 3)[2] is None  # TPE: --trials decides
 
 

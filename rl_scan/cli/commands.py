@@ -287,7 +287,9 @@ PRESET_FLAGS = (("num_env_runners", "num_env_runners"),
                 ("num_envs_per_env_runner", "envs_per_runner"), ("learner_cpus", "learner_cpus"),
                 ("overlap_sampling", "overlap_sampling"),
                 ("total_env_steps", "total_env_steps"), ("sampler", "sampler"),
-                ("custom_resources", "custom_resources"))
+                ("custom_resources", "custom_resources"),
+                ("evaluation_episodes", "evaluation_episodes"),
+                ("evaluation_interval", "evaluation_interval"))
 """(preset field, command-line dest) of the flags that override a training preset."""
 
 
@@ -351,7 +353,8 @@ def ablate_cmd(args: argparse.Namespace) -> int:
     folder = ablate(args.study, args.preset, seeds=args.seeds, trials=args.trials,
                     results_dir=args.results, name=args.name, address=args.address,
                     resume=args.resume, env_config=env_mapping_from_args(args),
-                    preset_overrides=overrides, conditions=args.conditions)
+                    preset_overrides=overrides, conditions=args.conditions,
+                    first_seed=args.seed)
     print(f"done: {folder}  (optuna-dashboard sqlite:///{folder / OPTUNA_DB})")
     return 0
 

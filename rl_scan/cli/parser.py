@@ -29,7 +29,8 @@ def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
     """Options every Tune-launched run shares (train, meta-train, adapt)."""
     p.add_argument("--preset", choices=tuple(PRESETS), default="quick",
                    help="budget: smoke (seconds), quick (minutes, default), paper (cluster)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the run (ablate: the first seed; --seeds count from it)")
     p.add_argument("--results", default="results", help="results folder (default results/)")
     p.add_argument("--name", default=None, help=f"run name (default {default_name})")
     p.add_argument("--address", default=None, help="Ray cluster address (default: local)")
@@ -44,6 +45,10 @@ def _add_run_args(p: argparse.ArgumentParser, default_name: str) -> None:
                    help="remote env runners sample the next batch while the learner trains "
                         "on this one (needs --num-env-runners >= 1; one iteration of policy "
                         "lag)")
+    p.add_argument("--eval-episodes", dest="evaluation_episodes", type=int, default=None,
+                   help="episodes per training-time evaluation (preset default; quick: 3)")
+    p.add_argument("--eval-interval", dest="evaluation_interval", type=int, default=None,
+                   help="training iterations between evaluations (preset default; quick: 5)")
     _add_sampler_arg(p)
     _add_resources_arg(p)
 

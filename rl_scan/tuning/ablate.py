@@ -69,16 +69,18 @@ def resumable_optuna_search(**kwargs):
     return ResumableOptunaSearch(**kwargs)
 
 
-def search_space(study: Study, seeds: int):
-    """Optuna distributions and sampler of a study, and its trial count for a grid."""
+def search_space(study: Study, seeds: int, first_seed: int = 0):
+    """Optuna distributions and sampler of a study, and its trial count for a grid
+    (seeds ``first_seed`` .. ``first_seed + seeds - 1``)."""
     import optuna
     from optuna.distributions import CategoricalDistribution
 
     if study.is_grid:
-        grid = {"condition": list(study.conditions), "seed": list(range(seeds))}
+        grid = {"condition": list(study.conditions),
+                "seed": list(range(first_seed, first_seed + seeds))}
         space = {k: CategoricalDistribution(v) for k, v in grid.items()}
         return space, optuna.samplers.GridSampler(grid, seed=0), len(study.conditions) * seeds
-    space = {**study.space(), "seed": CategoricalDistribution([0])}
+    space = {**study.space(), "seed": CategoricalDistribution([first_seed])}
     return space, optuna.samplers.TPESampler(seed=0), None
 
 
@@ -105,17 +107,21 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
            address: str | None = None, resume: bool = False,
            env_config: dict[str, Any] | None = None,
            preset_overrides: dict[str, Any] | None = None,
-           conditions: str | Sequence[str] | None = None, console=None) -> Path:
+           conditions: str | Sequence[str] | None = None, first_seed: int = 0,
+           console=None) -> Path:
     """Run (or resume) one ablation study; returns its folder.
 
     ``conditions`` runs a subset of a grid study's conditions (all by default), e.g. only
-    the team-reward half of ``reward``; the report compares what ran.
+    the team-reward half of ``reward``; the report compares what ran. ``first_seed``
+    shifts the seeds, so a study can grow by more seeds in another folder (the report
+    merges folders of one study: ``--compare``).
     """
     from rich.console import Console
 
     console = console or Console()
     study = only_conditions(get_study(study_name), conditions)
     check_range("seeds", seeds, 1, 100)
+    check_range("seed", first_seed, 0, 10_000)
     check_range("trials", trials, 1, 10_000)
     base = make_run_spec("poca", env_config, preset_name, preset_overrides=preset_overrides)
     preset = base.preset
@@ -124,7 +130,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
     name = name or f"ablate-{study.name}-{preset_name}"
     folder = Path(results_dir).resolve() / name
     check_output_folder(folder, R.STUDY_FILE, "study", resume)
-    space, sampler, grid_size = search_space(study, seeds)
+    space, sampler, grid_size = search_space(study, seeds, first_seed)
     for params in study.example_params():  # every condition builds before Ray starts
         base.for_trial(study.name, params).algorithm_config()
     cpus = init_ray(address)
@@ -136,7 +142,8 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
     if not resume:
         folder.mkdir(parents=True)
         R.write_yaml(folder / R.STUDY_FILE, {
-            "study": study.name, "preset": preset_name, "seeds": seeds, "trials": num_samples,
+            "study": study.name, "preset": preset_name, "seeds": seeds,
+            "first_seed": first_seed, "trials": num_samples,
             "conditions": list(study.conditions),
             "evaluation_episodes": preset.evaluation_episodes,
             "env_config": dict(env_config or {}), "preset_overrides": preset_overrides or {},
