@@ -107,8 +107,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
            address: str | None = None, resume: bool = False,
            env_config: dict[str, Any] | None = None,
            preset_overrides: dict[str, Any] | None = None,
-           conditions: str | Sequence[str] | None = None, first_seed: int = 0,
-           console=None) -> Path:
+           conditions: str | Sequence[str] | None = None, first_seed: int = 0) -> Path:
     """Run (or resume) one ablation study; returns its folder.
 
     ``conditions`` runs a subset of a grid study's conditions (all by default), e.g. only
@@ -118,7 +117,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
     """
     from rich.console import Console
 
-    console = console or Console()
+    console = Console()
     study = only_conditions(get_study(study_name), conditions)
     check_range("seeds", seeds, 1, 100)
     check_range("seed", first_seed, 0, 10_000)

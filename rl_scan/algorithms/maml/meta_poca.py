@@ -31,6 +31,7 @@ adapted actors are loaded between support and query sampling.
 from __future__ import annotations
 
 import copy
+import inspect
 from dataclasses import dataclass
 from typing import Any
 
@@ -241,19 +242,18 @@ def delta_norm(learner: MetaPOCALearner, delta: dict[Key, torch.Tensor]) -> floa
     return float(torch.sqrt(sum((d * d).sum() for k, d in delta.items() if k in params)))
 
 
-def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, tasks: int = 10,
-                     support_steps: int = 10_000, query_steps: int = 10_000,
-                     inner_updates: int = 1, inner_adam: str = "fresh", outer: str = "maml",
-                     reptile_lr: float = 1.0, maml_weight: float = 1.0,
-                     task_pool: int = N_TRAIN, train_batch_size: int = 4_000,
-                     minibatch_size: int = 1_024, **poca_kwargs: Any) -> MetaPOCAConfig:
+def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size: int = 4_000,
+                     minibatch_size: int = 1_024, **kwargs: Any) -> MetaPOCAConfig:
     """MetaPOCAConfig for the scanning env: POCA's settings (its minibatch size and epochs
-    serve the inner and outer updates) plus the meta ones. ``train_batch_size`` is accepted
-    for a common launch signature; a meta-iteration samples ``tasks * (support_steps +
-    query_steps)`` env steps instead."""
+    serve the inner and outer updates) plus the meta ones, the keywords of
+    ``MetaPOCAConfig.meta`` (defaults: the paper's, in ``MetaPOCAConfig``).
+    ``train_batch_size`` is accepted for a common launch signature; a meta-iteration
+    samples ``tasks * (support_steps + query_steps)`` env steps instead."""
+    meta = {k: kwargs.pop(k) for k in list(kwargs) if k in META_KEYWORDS}
     config = poca_config(env_config, base=MetaPOCAConfig(), train_batch_size=train_batch_size,
-                         minibatch_size=minibatch_size, **poca_kwargs)
-    return config.meta(tasks=tasks, support_steps=support_steps, query_steps=query_steps,
-                       inner_updates=inner_updates, inner_adam=inner_adam, outer=outer,
-                       reptile_lr=reptile_lr, maml_weight=maml_weight,
-                       task_pool=task_pool)
+                         minibatch_size=minibatch_size, **kwargs)
+    return config.meta(**meta)
+
+
+META_KEYWORDS = tuple(inspect.signature(MetaPOCAConfig.meta).parameters)[1:]
+"""The meta settings ``meta_poca_config`` takes (``MetaPOCAConfig.meta``'s keywords)."""
