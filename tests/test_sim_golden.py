@@ -43,9 +43,10 @@ GOLDEN = {  # name: (EnvConfig overrides, SHA-256 at the original kernels)
         "5a39f1be9b583143950b82f0b5d6414bf2d3e9b82ae596dc15bf43665a62b3ab"),
     "greedy": (
         {}, "88a63b2c69f10fd38aa1815331a5cc06c076a69d995021b2f4603ca656f916c3"),
-    "greedy_comm7_test2": (
+    "greedy_comm7_test2": (  # re-recorded when touring greedy quads began to pitch down
+        # (issue 18); with heuristics.TOUR_PITCH = 0 the digest of 6741c94 still comes out
         {"comm_scheme": 7, "scenario": "test:2"},
-        "fb9f0aee28b9d9862f6ea594341e4bf973725eeae423c8539b31a85afa2b1a2f"),
+        "710443fbfb33284833c4b049a75fb62bb6447edbc4c4eef99569c57799cc0ea0"),
 }
 
 
