@@ -35,6 +35,9 @@ class ReportSpec:
     """Title of the table column with the paper's figure per condition."""
     paper: dict[str, str] = field(default_factory=dict)
     """The paper's figure per condition (conditions it does not have show a dash)."""
+    claims: dict[str, str] = field(default_factory=dict)
+    """The paper's claim behind a comparison, keyed ``"X > Y"`` (a comparison without one is
+    ours); the report gives each a verdict from P(X > Y) (``reports/claims.py``)."""
 
 
 @dataclass(frozen=True)
@@ -92,19 +95,29 @@ def _hpo_space() -> dict[str, Any]:
 PAPER_TABLE_II = {"1": "succeed", "2": "failed", "3": "failed", "4": "failed",
                   "5": "failed", "6": "succeed", "7": "failed"}
 COMM_CONDITIONS = (*(str(i) for i in range(1, 8)), "1-noinfo")
+COMM_CLAIMS = {
+    **{f"1 > {c}": f"scheme 1 converges (8 M steps), scheme {c} fails (Table II)"
+       for c in ("2", "3", "4", "5", "7")},
+    "1 > 6": "scheme 1 converges in 8 M steps, scheme 6 in 14 M: the first scheme yields "
+             "better performance (Sec. IV-B)"}
 
 STUDIES: dict[str, Study] = {s.name: s for s in (
     Study("comm", "Table II's 7 communication schemes + scheme 1 without object information",
           _comm_run, conditions=COMM_CONDITIONS,
           # the paper's pick (scheme 1 with object information) against every other scheme
           report=ReportSpec(comparisons=tuple(("1", c) for c in COMM_CONDITIONS[1:]),
-                            paper_column="paper (Table II)", paper=PAPER_TABLE_II)),
+                            paper_column="paper (Table II)", paper=PAPER_TABLE_II,
+                            claims=COMM_CLAIMS)),
     Study("algo", "POCA vs PPO with the same hyperparameters",
           lambda p: TrialRun(algo=str(p["condition"])), conditions=("poca", "ppo"),
-          report=ReportSpec(comparisons=(("poca", "ppo"),))),
+          report=ReportSpec(comparisons=(("poca", "ppo"),), claims={
+              "poca > ppo": "POCA's curves converge better than PPO's with the same "
+                            "hyperparameters (Sec. IV-B)"})),
     Study("team", "heterogeneous 2 wheeled + 2 quads vs 4 quads vs 4 wheeled",
           _team_run, conditions=("2,2", "0,4", "4,0"),
-          report=ReportSpec(comparisons=(("2,2", "0,4"), ("2,2", "4,0")))),
+          report=ReportSpec(comparisons=(("2,2", "0,4"), ("2,2", "4,0")), claims={
+              "2,2 > 0,4": "2 wheeled + 2 quads scan more than 4 quads in the same steps "
+                           "(Sec. IV-B)"})),
     Study("reward", "individual vs team reward (every robot gets the team sum) x POCA vs PPO",
           lambda p: TrialRun(algo=str(p["condition"]).split("/")[0],
                              env={"reward_mode": str(p["condition"]).split("/")[1]}),
@@ -122,7 +135,12 @@ PAPER_META_SUCCESS = {"meta-mrss": 87.12, "dr": 68.54, "poca": 60.16, "transfer"
 META_MRSS_REPORT = ReportSpec(
     comparisons=(("meta-mrss", "dr"), ("meta-mrss", "transfer"), ("meta-mrss", "poca")),
     paper_column="paper success",
-    paper={m: f"{v} %" for m, v in PAPER_META_SUCCESS.items()})
+    paper={m: f"{v} %" for m, v in PAPER_META_SUCCESS.items()},
+    claims={f"meta-mrss > {m}": f"meta-MRSS scans held-out scenes better than {name} "
+                                f"(success {PAPER_META_SUCCESS['meta-mrss']} vs "
+                                f"{PAPER_META_SUCCESS[m]} %, Sec. IV-A)"
+            for m, name in (("dr", "domain randomisation"), ("transfer", "transfer learning"),
+                            ("poca", "standard POCA"))})
 
 
 def get_study(name: str) -> Study:

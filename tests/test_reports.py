@@ -365,3 +365,21 @@ def test_a_hetero_map_alone_makes_a_report_with_its_heatmap_and_winning_region(t
     assert "The mixed team wins at **1 of 3** points; largest margin +15.0 points" in md
     assert "| fan | 0.1 | 3.5 | 100.0 | 75.0 | 60.0 | 50.0 | +15.0 |" in md
     assert (tmp_path / "report" / "figures" / "hetero_map_map.png").stat().st_size > 0
+
+
+def test_each_paper_claim_gets_the_verdict_its_ci_implies(tmp_path):
+    from rl_scan.reports.claims import REPRODUCED, REVERSED, UNDECIDED, verdict
+
+    assert [verdict(ci) for ci in ((0.51, 0.9), (0.1, 0.49), (0.2, 0.8), (0.5, 0.9))] == [
+        REPRODUCED, REVERSED, UNDECIDED, UNDECIDED]
+    # the paper: 2 + 2 beat 4 quads; here 4 quads win every pair (P = 0, CI [0, 0])
+    _study(tmp_path / "results", {"2,2": [0.6, 0.7, 0.65], "0,4": [0.9, 0.95, 0.92],
+                                  "4,0": [0.5, 0.6, 0.7]}, kind="team")
+    out = build_report(tmp_path / "results", tmp_path / "first", reference=False)
+    md = (out / "report.md").read_text()
+    assert "| 2,2 > 0,4 | 0.00 [0.00, 0.00] | 2 wheeled + 2 quads scan more than 4 quads" in md
+    assert "(Sec. IV-B) | reversed |" in md and "**reversed** if it lies below 0.5" in md
+    # 2,2 > 4,0 is ours, no verdict: .6 wins 1.5 pairs (a tie), .7 2.5, .65 2: 6 of 9
+    assert "| 2,2 > 4,0 | 0.67 " in md and "(ours: not a claim of the paper) | - |" in md
+    again = (build_report(out, tmp_path / "again", reference=False) / "report.md").read_text()
+    assert "(Sec. IV-B) | reversed |" in again  # claims survive the rebuild from runs.json

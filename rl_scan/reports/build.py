@@ -8,7 +8,7 @@ Per group of runs (an ablation study, a meta-MRSS experiment, loose training run
     bootstrap 95 % CI, success rate with a Wilson 95 % CI over evaluation episodes, and
     the convergence verdict by the rule stated in the report (``CONVERGED``);
   * probability of improvement for the paper's comparisons (POCA vs PPO, hetero vs homo,
-    meta-MRSS vs each baseline);
+    meta-MRSS vs each baseline) and a verdict on each of the paper's claims (``claims``);
   * compute: env steps/s end to end and wall time per run, hardware, package versions.
 Headline scores are final-checkpoint scores (the last evaluation of each run). Runs still
 going are reported as far as they got, and missing runs are listed. Raw per-run metrics
@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from rl_scan import results as R
+from rl_scan.reports.claims import improvement_lines
 from rl_scan.reports.collect import (
     MARL_EVAL_FILE,
     Collection,
@@ -43,8 +44,6 @@ from rl_scan.reports.html import to_html
 from rl_scan.reports.stats import (
     iqm,
     mean_std,
-    probability_of_improvement,
-    probability_of_improvement_ci,
     stratified_bootstrap_ci,
     wilson_interval,
 )
@@ -101,19 +100,6 @@ def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
             "speed_reached": len(reached), "finals": finals,
             "tasks": [r.scenario for r in scored]})
     return rows
-
-
-def improvement_rows(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    by_cond = {r["condition"]: (r["finals"], r["tasks"]) for r in rows}
-    out = []
-    for a, b in spec.comparisons:
-        if a in by_cond and b in by_cond and by_cond[a][0] and by_cond[b][0]:
-            (xa, ta), (xb, tb) = by_cond[a], by_cond[b]
-            p = probability_of_improvement(xa, xb, ta, tb)
-            if not math.isnan(p):  # no common task: no comparison
-                out.append({"x": a, "y": b, "p": p,
-                            "ci": probability_of_improvement_ci(xa, xb, ta, tb)})
-    return out
 
 
 def greedy_reference(scenario: str, episodes: int = 3) -> float:
@@ -373,11 +359,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         md += meta_lines(runs)
         if ref is not None and not math.isnan(ref):
             md += ["", f"Scripted greedy team on {scenarios[0]}: {100 * ref:.1f} % coverage."]
-        imp = improvement_rows(spec, rows)
-        if imp:
-            md += ["", "| probability of improvement | P(X > Y) [95 % CI] |", "|---|---|"]
-            md += [f"| {i['x']} > {i['y']} | {i['p']:.2f} [{i['ci'][0]:.2f}, {i['ci'][1]:.2f}] |"
-                   for i in imp]
+        md += improvement_lines(spec, rows)
         if data.rebuilt_from != MARL_EVAL_FILE:  # which keeps no wall times
             md += ["", "| run | env steps | wall time | env steps/s (end to end) |",
                    "|---|---|---|---|"]

@@ -162,8 +162,8 @@ def collect(root: str | Path) -> Collection:
         data = R.read_json(root / R.REPORT_RUNS_FILE) or {}
         out.runs = [RunRecord.from_json(r) for r in data.get("runs", [])]
         out.planned, out.kinds = data.get("planned", {}), data.get("kinds", {})
-        out.reports = {group: ReportSpec(comparisons=tuple(tuple(p) for p in spec["comparisons"]),
-                                         paper_column=spec["paper_column"], paper=spec["paper"])
+        out.reports = {group: ReportSpec(**{**spec, "comparisons": tuple(
+                           tuple(p) for p in spec["comparisons"])})
                        for group, spec in data.get("reports", {}).items()}
         out.rebuilt_from = R.REPORT_RUNS_FILE
     elif not out.runs and (root / MARL_EVAL_FILE).is_file():

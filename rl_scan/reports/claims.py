@@ -1,0 +1,60 @@
+"""The report's comparisons: P(X > Y) per pair, and a verdict on each of the paper's claims.
+
+A claim is "X scores higher than Y" (``ReportSpec.claims``, keyed ``"X > Y"``); its verdict
+follows from the 95 % CI of P(X > Y) by ``VERDICT_RULE``, so it regenerates with the
+numbers and never depends on who reads them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from rl_scan.reports.stats import probability_of_improvement, probability_of_improvement_ci
+from rl_scan.studies import ReportSpec
+
+REPRODUCED, REVERSED, UNDECIDED = "reproduced", "reversed", "not reproduced"
+VERDICT_RULE = (
+    "A claim of the paper that X beats Y is **reproduced** if the 95 % CI of P(X > Y) "
+    "(final coverage) lies above 0.5, **reversed** if it lies below 0.5, and **not "
+    "reproduced** if it contains 0.5 (these runs do not separate X from Y).")
+
+
+def verdict(ci: tuple[float, float]) -> str:
+    lo, hi = ci
+    if lo > 0.5:
+        return REPRODUCED
+    return REVERSED if hi < 0.5 else UNDECIDED
+
+
+def improvement_rows(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """P(X > Y) with its CI for every comparison both of whose conditions have scores,
+    with the paper's claim and its verdict where the pair has one."""
+    by_cond = {r["condition"]: (r["finals"], r["tasks"]) for r in rows}
+    out = []
+    for a, b in spec.comparisons:
+        if a in by_cond and b in by_cond and by_cond[a][0] and by_cond[b][0]:
+            (xa, ta), (xb, tb) = by_cond[a], by_cond[b]
+            p = probability_of_improvement(xa, xb, ta, tb)
+            if math.isnan(p):  # no common task: no comparison
+                continue
+            ci = probability_of_improvement_ci(xa, xb, ta, tb)
+            claim = spec.claims.get(f"{a} > {b}")
+            out.append({"x": a, "y": b, "p": p, "ci": ci, "claim": claim,
+                        "verdict": verdict(ci) if claim else None})
+    return out
+
+
+def improvement_lines(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[str]:
+    """The comparison table (Markdown lines; none without a comparison to make)."""
+    imp = improvement_rows(spec, rows)
+    if not imp:
+        return []
+    lines = ["", "| probability of improvement | P(X > Y) [95 % CI] | the paper's claim | "
+             "verdict |", "|---|---|---|---|"]
+    lines += [f"| {i['x']} > {i['y']} | {i['p']:.2f} [{i['ci'][0]:.2f}, {i['ci'][1]:.2f}] | "
+              f"{i['claim'] or '(ours: not a claim of the paper)'} | {i['verdict'] or '-'} |"
+              for i in imp]
+    if any(i["claim"] for i in imp):
+        lines += ["", VERDICT_RULE]
+    return lines
