@@ -58,3 +58,49 @@ def test_a_point_trains_with_the_overrides_the_map_evaluated():
              "flight_time": 300.0}
     args = hetero.set_args(point)
     assert make_env_config(parse_set(args[1::2])) == make_env_config(hetero.point_env(point))
+
+
+def _team_study(root, name: str, env: dict, finals: dict[str, list[float]]) -> None:
+    """A team study folder as ``rl-scan ablate team --set ...`` writes it."""
+    import yaml
+
+    study = root / name
+    study.mkdir(parents=True)
+    (study / R.STUDY_FILE).write_text(yaml.safe_dump(
+        {"study": "team", "trials": sum(map(len, finals.values())), "env_config": env}))
+    for cond, values in finals.items():
+        for seed, final in enumerate(values):
+            run = R.trial_run_dir(study, f"{cond}_{seed}")
+            run.mkdir(parents=True)
+            (run / R.RUN_FILE).write_text(yaml.safe_dump(
+                {"algo": "poca", "seed": seed, "params": {"condition": cond, "seed": seed},
+                 "env_config": {"scenario": "ablation"}}))
+            (run / R.EVAL_FILE).write_text(json.dumps([{
+                "training_iteration": 100, "env_steps": 400_000, "coverage": final}]))
+
+
+def test_team_studies_trained_at_map_points_are_marked_and_tabled(tmp_path, monkeypatch):
+    import shutil
+
+    from rl_scan.reports.build import build_report
+
+    monkeypatch.setattr(hetero, "AXES", SMALL_AXES)
+    results = tmp_path / "results"
+    hetero.hetero_map(results, "map", scenes=1)
+    short = {"wheeled_sensor": "fan", "quad_speed": 0.1, "quad_range": 3.5, "flight_time": 20.0}
+    _team_study(results, "team-20s", hetero.point_env(short),
+                {"2,2": [0.8, 0.9], "0,4": [0.7, 0.75], "4,0": [0.5, 0.6]})
+    _team_study(results, "team-default", {},  # the default EnvConfig is the point at 0 s
+                {"2,2": [0.6, 0.7], "0,4": [0.9, 0.8]})
+    _team_study(results, "team-comm3", {"comm_scheme": 3}, {"2,2": [0.9], "0,4": [0.1]})
+    out = build_report(results, tmp_path / "report", reference=False)
+    md = (out / "report.md").read_text()
+    # mixed 85.0 vs the better homogeneous team (4 quads, 72.5): +12.5, both mixed runs
+    # beat both quad runs: P = 1
+    assert ("| team-20s | fan, 0.1, 3.5, 20.0 | 400,000 | 0,4: 2, 2,2: 2, 4,0: 2 | 85.0 | "
+            "72.5 (0,4) | +12.5 | 1.00 [1.00, 1.00] |") in md
+    assert "| team-default | fan, 0.1, 3.5, 0.0 | 400,000 | 0,4: 2, 2,2: 2 | 65.0 | 85.0 " in md
+    assert "team-comm3 | fan" not in md  # another comm scheme is no point of this map
+    shutil.copy(results / "map" / R.HETERO_MAP, out)  # the committed example's layout
+    again = (build_report(out, tmp_path / "again", reference=False) / "report.md").read_text()
+    assert "| team-20s | fan, 0.1, 3.5, 20.0 | 400,000 |" in again  # rebuilt from runs.json

@@ -302,7 +302,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "flight-time budget. At each of the 32 grid points the scripted greedy "
                     "team plays the same train scenes as 2 + 2, 0 + 4 and 4 + 0; the point's "
                     "value is mixed minus best homogeneous coverage. Re-running resumes "
-                    "(finished points are kept); `rl-scan report` draws the map.")
+                    "(finished points are kept); `rl-scan report` draws the map. To train "
+                    "a point, run `rl-scan ablate team` with the point's settings as --set "
+                    "(wheeled.elevations, quad.max_speed, quad.sensor_range, "
+                    "quad_flight_time) into the same results folder: the report marks every "
+                    "team study whose settings are a point's on the map.")
     hm.add_argument("--scenes", type=int, default=8,
                     help="train scenes (train:0 ..) each team plays at every point")
     hm.add_argument("--results", default="results")

@@ -310,7 +310,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
     out = Path(out_dir).resolve() if out_dir else results_dir / "report"
     (out / "figures").mkdir(parents=True, exist_ok=True)
     data: Collection = collect(results_dir)
-    maps = hetero_map_lines(results_dir, out / "figures")
+    maps = hetero_map_lines(results_dir, out / "figures", data)
     if not data.runs and not maps:
         raise ValueError(f"results_dir={str(results_dir)!r} holds no rl-scan runs or studies")
     if compare is not None:

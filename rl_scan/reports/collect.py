@@ -79,6 +79,8 @@ class Collection:
     reports: dict[str, ReportSpec] = field(default_factory=dict)  # group -> what to compare
     kinds: dict[str, str] = field(default_factory=dict)
     """group -> what it is: "study:<name>", "meta:<pretrain|adapt>" or "runs" (loose)."""
+    envs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """study group -> the EnvConfig overrides every trial of it ran with (``--set``)."""
     rebuilt_from: str = ""
     """The earlier report file these runs were read from ("" for run folders)."""
 
@@ -116,6 +118,7 @@ def _place(folder: Path, meta: dict[str, Any], out: Collection) -> tuple[str, st
         study = R.read_yaml(top / R.STUDY_FILE) or {}
         out.planned[top.name] = int(study.get("trials", 0))
         out.kinds[top.name] = f"study:{study.get('study', '')}"
+        out.envs[top.name] = study.get("env_config") or {}
         return top.name, trial_condition(meta.get("params") or {})
     if parent.name in (R.PRETRAIN_DIR, R.ADAPT_DIR):  # a meta-MRSS experiment
         group = f"{top.name}/{parent.name}"
@@ -162,6 +165,7 @@ def collect(root: str | Path) -> Collection:
         data = R.read_json(root / R.REPORT_RUNS_FILE) or {}
         out.runs = [RunRecord.from_json(r) for r in data.get("runs", [])]
         out.planned, out.kinds = data.get("planned", {}), data.get("kinds", {})
+        out.envs = data.get("envs", {})
         out.reports = {group: ReportSpec(**{**spec, "comparisons": tuple(
                            tuple(p) for p in spec["comparisons"])})
                        for group, spec in data.get("reports", {}).items()}
@@ -186,7 +190,7 @@ def _kind_from_name(group: str) -> str:
 def runs_file(data: Collection) -> dict[str, Any]:
     """REPORT_RUNS_FILE's content: every run as read, and each group's plan and kind."""
     return {"runs": [r.to_json() for r in data.runs], "planned": data.planned,
-            "kinds": data.kinds,
+            "kinds": data.kinds, "envs": data.envs,
             "reports": {group: asdict(spec) for group, spec in data.reports.items()}}
 
 

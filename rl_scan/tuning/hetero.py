@@ -146,10 +146,12 @@ def hetero_map(results_dir: str | Path = "results", name: str = "hetero-map", *,
 
 
 def write_map(study, path: Path) -> None:
-    """Every finished point, its teams' coverages and its value, for the report."""
+    """Every finished point, its EnvConfig overrides (the report finds the trained team
+    studies run at a point by them), its teams' coverages and its value, for the report."""
     import optuna
 
-    points = [{"params": t.params, "value": t.value, **t.user_attrs}
+    points = [{"params": t.params, "env": point_env(t.params), "value": t.value,
+               **t.user_attrs}
               for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
     data = {"axes": {k: list(v) for k, v in AXES.items()}, "teams": TEAMS,
             "scenes": study.user_attrs.get("scenes"), "points": points}
