@@ -14,13 +14,21 @@ from rl_scan.reports.stats import probability_of_improvement, probability_of_imp
 from rl_scan.studies import ReportSpec
 
 REPRODUCED, REVERSED, UNDECIDED = "reproduced", "reversed", "not reproduced"
+MIN_RUNS = 3
+"""Runs each side needs for a verdict: with one or two, the bootstrap CI of P(X > Y)
+collapses onto the few pairs there are (one run each gives [0, 0] or [1, 1])."""
+TOO_FEW = f"none (fewer than {MIN_RUNS} runs a side)"
 VERDICT_RULE = (
     "A claim of the paper that X beats Y is **reproduced** if the 95 % CI of P(X > Y) "
     "(final coverage) lies above 0.5, **reversed** if it lies below 0.5, and **not "
-    "reproduced** if it contains 0.5 (these runs do not separate X from Y).")
+    f"reproduced** if it contains 0.5 (these runs do not separate X from Y); with fewer "
+    f"than {MIN_RUNS} runs of X or of Y there is no verdict.")
 
 
-def verdict(ci: tuple[float, float]) -> str:
+def verdict(ci: tuple[float, float], runs: int = MIN_RUNS) -> str:
+    """The verdict on "X beats Y" from the CI of P(X > Y); ``runs``: the smaller side."""
+    if runs < MIN_RUNS:
+        return TOO_FEW
     lo, hi = ci
     if lo > 0.5:
         return REPRODUCED
@@ -41,7 +49,7 @@ def improvement_rows(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[dict[
             ci = probability_of_improvement_ci(xa, xb, ta, tb)
             claim = spec.claims.get(f"{a} > {b}")
             out.append({"x": a, "y": b, "p": p, "ci": ci, "claim": claim,
-                        "verdict": verdict(ci) if claim else None})
+                        "verdict": verdict(ci, min(len(xa), len(xb))) if claim else None})
     return out
 
 

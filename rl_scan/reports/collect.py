@@ -11,7 +11,7 @@ experiment meant to run so a report can say what is missing.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -133,22 +133,29 @@ def _place(folder: Path, meta: dict[str, Any], out: Collection) -> tuple[str, st
 
 
 def _specs(out: Collection) -> None:
-    """Each group's ReportSpec from its kind: a study's from the registry, meta-MRSS
-    adaptation's, and for loose runs POCA vs PPO on each scenario both ran on."""
+    """Each group's ReportSpec: the one kept by the report this was rebuilt from (with
+    the registry's claims if it predates them), else the one of its kind."""
     for group, kind in out.kinds.items():
-        if group in out.reports:  # kept by the report this was rebuilt from
-            continue
-        if kind.startswith("study:"):
-            known = STUDIES.get(kind[len("study:"):])
-            out.reports[group] = known.report if known else ReportSpec()
-        elif kind.startswith("meta:"):
-            out.reports[group] = META_MRSS_REPORT if kind == f"meta:{R.ADAPT_DIR}" \
-                else ReportSpec()
-        else:
-            conditions = {r.condition for r in out.runs if r.group == group}
-            out.reports[group] = ReportSpec(comparisons=tuple(
-                (c, "ppo" + c[len("poca"):]) for c in sorted(conditions)
-                if c.startswith("poca on ") and "ppo" + c[len("poca"):] in conditions))
+        known = _spec_of_kind(out, group, kind)
+        kept = out.reports.get(group)
+        if kept is None:
+            out.reports[group] = known
+        elif not kept.claims:
+            out.reports[group] = replace(kept, claims=known.claims)
+
+
+def _spec_of_kind(out: Collection, group: str, kind: str) -> ReportSpec:
+    """A study's from the registry, meta-MRSS adaptation's, and for loose runs POCA vs PPO
+    on each scenario both ran on."""
+    if kind.startswith("study:"):
+        known = STUDIES.get(kind[len("study:"):])
+        return known.report if known else ReportSpec()
+    if kind.startswith("meta:"):
+        return META_MRSS_REPORT if kind == f"meta:{R.ADAPT_DIR}" else ReportSpec()
+    conditions = {r.condition for r in out.runs if r.group == group}
+    return ReportSpec(comparisons=tuple(
+        (c, "ppo" + c[len("poca"):]) for c in sorted(conditions)
+        if c.startswith("poca on ") and "ppo" + c[len("poca"):] in conditions))
 
 
 def collect(root: str | Path) -> Collection:
