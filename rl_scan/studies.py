@@ -92,6 +92,7 @@ def _hpo_space() -> dict[str, Any]:
             "num_epochs": IntDistribution(1, 5)}
 
 
+TEAM_MIXED, TEAM_HOMOGENEOUS = "2,2", ("0,4", "4,0")  # the team study's (wheeled,quads)
 PAPER_TABLE_II = {"1": "succeed", "2": "failed", "3": "failed", "4": "failed",
                   "5": "failed", "6": "succeed", "7": "failed"}
 COMM_CONDITIONS = (*(str(i) for i in range(1, 8)), "1-noinfo")
@@ -114,7 +115,7 @@ STUDIES: dict[str, Study] = {s.name: s for s in (
               "poca > ppo": "POCA's curves converge better than PPO's with the same "
                             "hyperparameters (Sec. IV-B)"})),
     Study("team", "heterogeneous 2 wheeled + 2 quads vs 4 quads vs 4 wheeled",
-          _team_run, conditions=("2,2", "0,4", "4,0"),
+          _team_run, conditions=(TEAM_MIXED, *TEAM_HOMOGENEOUS),
           report=ReportSpec(comparisons=(("2,2", "0,4"), ("2,2", "4,0")), claims={
               "2,2 > 0,4": "2 wheeled + 2 quads scan more than 4 quads in the same steps "
                            "(Sec. IV-B)"})),

@@ -21,8 +21,8 @@ import numpy as np
 from rl_scan import results as R
 from rl_scan.reports.collect import Collection
 from rl_scan.reports.stats import probability_of_improvement, probability_of_improvement_ci
-
-MIXED, HOMOGENEOUS = "2,2", ("0,4", "4,0")  # the team study's conditions (wheeled,quads)
+from rl_scan.studies import TEAM_HOMOGENEOUS as HOMOGENEOUS
+from rl_scan.studies import TEAM_MIXED as MIXED
 
 ROW_AXES = ("wheeled_sensor", "quad_speed", "quad_range")  # the heatmap's rows; columns:
 COLUMN_AXIS = "flight_time"  # 0 = unlimited
