@@ -72,7 +72,8 @@ def _tasks(learner, runner, scenarios=("train:0", "train:1")) -> list:
     return tasks
 
 
-def test_the_inner_update_is_an_ordinary_poca_update_and_leaves_theta_as_it_was():
+@pytest.mark.parametrize("lr_scale", [1.0, 4.0])  # inner_lr: MAML's alpha over beta
+def test_the_inner_update_is_an_ordinary_poca_update_and_leaves_theta_as_it_was(lr_scale):
     _, runner, learner = _setup()
     support = _sample(runner, "train:0")
     # one outer-style update first, so the meta optimizer has state to keep
@@ -81,9 +82,10 @@ def test_the_inner_update_is_an_ordinary_poca_update_and_leaves_theta_as_it_was(
     meta_adam = {n: copy.deepcopy(o.state_dict()) for n, o in learner._named_optimizers.items()}
 
     _seeded()
-    delta, adapted, _ = learner.adapt(support, {})
-    # a standalone POCA learner from the same weights, with a new Adam, on the same batch
-    plain_config = poca_config(ENV, **TRAINING)
+    delta, adapted, _ = learner.adapt(support, {}, lr_scale=lr_scale)
+    # a standalone POCA learner from the same weights, with a new Adam at POCA's lr x
+    # lr_scale, on the same batch
+    plain_config = poca_config(ENV, **{**TRAINING, "lr": TRAINING["lr"] * lr_scale})
     plain = plain_config.build_learner(env=None, spaces=runner.get_spaces())
     for mid in learner.module.keys():
         plain.module[mid].load_state_dict(learner.module[mid].state_dict())
@@ -101,7 +103,9 @@ def test_the_inner_update_is_an_ordinary_poca_update_and_leaves_theta_as_it_was(
     for mid, sd in adapted.items():
         for n, t in sd.items():
             torch.testing.assert_close(t, reached[(mid, n)], rtol=1e-5, atol=1e-6)
-    # the learner is back at theta with the meta optimizer's moments
+    # the learner is back at theta with the meta optimizer's moments and POCA's lr
+    assert {o.param_groups[0]["lr"] for o in learner._named_optimizers.values()} == {
+        TRAINING["lr"]}
     for key, t in _state(learner).items():
         assert torch.equal(t, theta[key]), key
     for name, opt in learner._named_optimizers.items():
@@ -302,6 +306,7 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer,
                         r"'reptile', 'multitask'\]"),
     (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),
     (dict(maml_weight=-0.5), r"meta.maml_weight=-0.5 is invalid"),
+    (dict(inner_lr=0), r"meta.inner_lr=0 is invalid"),
     (dict(num_env_runners=1), r"num_env_runners=1"),
 ])
 def test_bad_meta_settings_fail_before_building(meta, message):

@@ -186,7 +186,8 @@ def build_parser() -> argparse.ArgumentParser:
     mt.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
     mt.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
                     help="a meta setting over the preset's: tasks, support_steps, "
-                         "query_steps, inner_updates, inner_adam (fresh or meta), outer "
+                         "query_steps, inner_updates, inner_lr (the inner updates' lr as a "
+                         "multiple of POCA's), inner_adam (fresh or meta), outer "
                          "(maml; maml_dr: maml whose update at theta also learns from "
                          "the query batches; reptile; or multitask: the control without "
                          "the MAML shift), reptile_lr, maml_weight (the MAML term's "

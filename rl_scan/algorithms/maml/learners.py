@@ -1,7 +1,8 @@
 """MetaPOCA's learner: POCA's own learner plus the three moves first-order MAML-PPO needs.
 
 ``adapt``       the inner loop: ordinary POCA updates (this learner's ``update``: the
-                preset's epochs and minibatches, Adam at POCA's lr from a fresh state,
+                preset's epochs and minibatches, Adam at POCA's lr (times a factor: MAML's
+                alpha) from a fresh state,
                 actors and critic) on one task's support batch. It returns the task's
                 delta = theta' - theta and the adapted actors, and puts the learner back
                 at theta with its meta optimizer state.
@@ -50,10 +51,12 @@ class MetaPOCALearner(POCATorchLearner):
                 if t.is_floating_point()}
 
     def adapt(self, episodes: list, timesteps: dict[str, Any], updates: int = 1,
-              start: dict[Key, torch.Tensor] | None = None, fresh_adam: bool = True
+              start: dict[Key, torch.Tensor] | None = None, fresh_adam: bool = True,
+              lr_scale: float = 1.0
               ) -> tuple[dict[Key, torch.Tensor], dict[str, dict[str, torch.Tensor]], dict]:
         """``updates`` ordinary POCA updates on ``episodes`` from theta (or theta + ``start``)
-        with a fresh Adam (or, ``fresh_adam=False``, from a copy of the meta Adam's state).
+        with a fresh Adam (or, ``fresh_adam=False``, from a copy of the meta Adam's state)
+        at POCA's lr x ``lr_scale``.
 
         Returns (delta = the state reached - theta, the adapted actors' state dicts, the
         last update's results); the learner is back at theta, its optimizer state the
@@ -70,8 +73,9 @@ class MetaPOCALearner(POCATorchLearner):
             for optimizer in self._named_optimizers.values():
                 optimizer.state.clear()  # fresh moments: Adam starts as a new optimizer does
         for _ in range(updates):
-            results = self.update(episodes=copy.deepcopy(episodes),
-                                  **self.update_kwargs(timesteps))
+            with self.lr_scaled(lr_scale):  # per update: RLlib resets the lr after each
+                results = self.update(episodes=copy.deepcopy(episodes),
+                                      **self.update_kwargs(timesteps))
         delta = {k: t.detach() - theta[k] for k, t in self.float_state().items()}
         adapted = {mid: {n: t.detach().clone() for n, t in self.module[mid].state_dict().items()}
                    for mid in self.module.keys() if mid != CRITIC_ID}

@@ -3,8 +3,8 @@
 Per meta-iteration, for each of ``meta_tasks`` distinct train scenarios (task i):
   1. sample ``support_steps`` env steps with the meta policy theta (fresh episodes);
   2. inner loop: ``inner_updates`` ordinary POCA updates on that support batch (the
-     preset's epochs and minibatches, Adam at POCA's lr from a fresh state, actors and
-     critic) give theta'_i and delta_i = theta'_i - theta; the learner returns to theta;
+     preset's epochs and minibatches, Adam at POCA's lr x ``inner_lr`` from a fresh state,
+     actors and critic) give theta'_i and delta_i = theta'_i - theta; the learner returns to theta;
   3. sample ``query_steps`` env steps with theta'_i.
 Then the outer update (``outer``):
   * ``maml``: one ordinary POCA update at theta on every task's support batch (the
@@ -68,6 +68,7 @@ class MetaPOCAConfig(POCAConfig):
         self.support_steps = 10_000
         self.query_steps = 10_000
         self.inner_updates = 1
+        self.inner_lr = 1.0
         self.inner_adam = "fresh"
         self.outer_rule = "maml"
         self.reptile_lr = 1.0
@@ -76,14 +77,14 @@ class MetaPOCAConfig(POCAConfig):
 
     def meta(self, *, tasks: int = NotProvided, support_steps: int = NotProvided,
              query_steps: int = NotProvided, inner_updates: int = NotProvided,
-             inner_adam: str = NotProvided,
+             inner_lr: float = NotProvided, inner_adam: str = NotProvided,
              outer: str = NotProvided, reptile_lr: float = NotProvided,
              maml_weight: float = NotProvided, task_pool: int = NotProvided) -> MetaPOCAConfig:
         """Meta settings (``MetaSettings`` documents each); ``task_pool``: tasks are drawn
         from ``train:0`` .. ``train:{task_pool - 1}``."""
         for name, value in (("meta_tasks", tasks), ("support_steps", support_steps),
                             ("query_steps", query_steps), ("inner_updates", inner_updates),
-                            ("inner_adam", inner_adam),
+                            ("inner_lr", inner_lr), ("inner_adam", inner_adam),
                             ("outer_rule", outer), ("reptile_lr", reptile_lr),
                             ("maml_weight", maml_weight), ("task_pool", task_pool)):
             if value is not NotProvided:
@@ -98,6 +99,7 @@ class MetaPOCAConfig(POCAConfig):
     def validate(self) -> None:
         check_range("meta.tasks", self.meta_tasks, 1)
         check_range("meta.inner_updates", self.inner_updates, 1, 100)
+        check_range("meta.inner_lr", self.inner_lr, 0.0, 100.0, lo_open=True)
         check_range("meta.task_pool", self.task_pool, 1, N_TRAIN)
         check_range("meta.tasks", self.meta_tasks, 1, self.task_pool)  # distinct tasks
         if self.inner_adam not in INNER_ADAM:
@@ -178,7 +180,8 @@ class MetaPOCA(POCA):
             with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
                 delta, adapted, _ = learner.adapt(support, self._timesteps(),
                                                   cfg.inner_updates,
-                                                  fresh_adam=cfg.inner_adam == "fresh")
+                                                  fresh_adam=cfg.inner_adam == "fresh",
+                                                  lr_scale=cfg.inner_lr)
             query = self._sample(runner, adapted, cfg.query_steps)
             tasks.append(Task(scenario, support, query, delta))
         set_task(runner, cfg.env_config.get("scenario", "ablation"))

@@ -28,6 +28,10 @@ class MetaSettings:
     """Env steps sampled per task with the adapted policy."""
     inner_updates: int = 1
     """Ordinary POCA updates (the preset's epochs and minibatches) on the support batch."""
+    inner_lr: float = 1.0
+    """The inner updates' lr as a multiple of POCA's (MAML's alpha over beta): one update at
+    POCA's lr moves the policy about one training iteration's worth, too little for a
+    scene to show in the adapted policy's coverage (docs/DESIGN.md, #16)."""
     inner_adam: str = "fresh"
     """The inner update's Adam state: ``fresh`` (a new optimizer, the paper's reading) or
     ``meta`` (a copy of the meta optimizer's moments: the inner steps continue its scale)."""
@@ -49,6 +53,7 @@ class MetaSettings:
         check_range(prefix + "support_steps", self.support_steps, 1)
         check_range(prefix + "query_steps", self.query_steps, 1)
         check_range(prefix + "inner_updates", self.inner_updates, 1, 100)
+        check_range(prefix + "inner_lr", self.inner_lr, 0.0, 100.0, lo_open=True)
         if self.inner_adam not in INNER_ADAM:
             fail(prefix + "inner_adam", self.inner_adam, f"one of {list(INNER_ADAM)}")
         if self.outer not in OUTER_RULES:
