@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import copy
 import inspect
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -50,13 +50,16 @@ from ray.rllib.utils.metrics import (
 
 from rl_scan.algorithms.callbacks import episode_summary
 from rl_scan.algorithms.maml.learners import Key, MetaPOCALearner
-from rl_scan.algorithms.maml.settings import INNER_ADAM, OUTER_RULES, check_steps_fit
+from rl_scan.algorithms.maml.settings import MetaSettings, check_steps_fit
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
 from rl_scan.config import check_range, fail
 from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.scenarios import N_TRAIN
 from rl_scan.results import META_AFTER, META_BEFORE, META_DELTA_NORM
+
+CONFIG_ATTRS = {"tasks": "meta_tasks", "outer": "outer_rule"}
+"""MetaSettings fields whose MetaPOCAConfig attribute has another name."""
 
 
 class MetaPOCAConfig(POCAConfig):
@@ -95,19 +98,16 @@ class MetaPOCAConfig(POCAConfig):
     def get_default_learner_class(self):
         return MetaPOCALearner
 
+    def settings(self) -> MetaSettings:
+        """The meta settings as ``MetaSettings`` (which holds their documentation and rules)."""
+        return MetaSettings(**{f.name: getattr(self, CONFIG_ATTRS.get(f.name, f.name))
+                               for f in fields(MetaSettings)})
+
     @override(POCAConfig)
     def validate(self) -> None:
-        check_range("meta.tasks", self.meta_tasks, 1)
-        check_range("meta.inner_updates", self.inner_updates, 1, 100)
-        check_range("meta.inner_lr", self.inner_lr, 0.0, 100.0, lo_open=True)
+        self.settings().validate("meta.")
         check_range("meta.task_pool", self.task_pool, 1, N_TRAIN)
         check_range("meta.tasks", self.meta_tasks, 1, self.task_pool)  # distinct tasks
-        if self.inner_adam not in INNER_ADAM:
-            fail("meta.inner_adam", self.inner_adam, f"one of {list(INNER_ADAM)}")
-        if self.outer_rule not in OUTER_RULES:
-            fail("meta.outer", self.outer_rule, f"one of {list(OUTER_RULES)}")
-        check_range("meta.reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
-        check_range("meta.maml_weight", self.maml_weight, 0.0, 10.0)
         check_steps_fit(self.support_steps, self.query_steps, self.num_envs_per_env_runner,
                         "meta.")
         max_steps = int(self.env_config.get("max_steps", 0))
