@@ -85,13 +85,13 @@ class MetaPOCAConfig(POCAConfig):
              maml_weight: float = NotProvided, task_pool: int = NotProvided) -> MetaPOCAConfig:
         """Meta settings (``MetaSettings`` documents each); ``task_pool``: tasks are drawn
         from ``train:0`` .. ``train:{task_pool - 1}``."""
-        for name, value in (("meta_tasks", tasks), ("support_steps", support_steps),
-                            ("query_steps", query_steps), ("inner_updates", inner_updates),
-                            ("inner_lr", inner_lr), ("inner_adam", inner_adam),
-                            ("outer_rule", outer), ("reptile_lr", reptile_lr),
-                            ("maml_weight", maml_weight), ("task_pool", task_pool)):
+        given = dict(tasks=tasks, support_steps=support_steps, query_steps=query_steps,
+                     inner_updates=inner_updates, inner_lr=inner_lr, inner_adam=inner_adam,
+                     outer=outer, reptile_lr=reptile_lr, maml_weight=maml_weight,
+                     task_pool=task_pool)
+        for name, value in given.items():
             if value is not NotProvided:
-                setattr(self, name, value)
+                setattr(self, CONFIG_ATTRS.get(name, name), value)
         return self
 
     @override(POCAConfig)
