@@ -10,13 +10,14 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import pytest
 
 from rl_scan import results as R
 from rl_scan.cli import main
 from rl_scan.studies import STUDIES, TrialRun
-from rl_scan.tuning.ablate import only_conditions, search_space
+from rl_scan.tuning.ablate import only_conditions, resumable_optuna_search, search_space
 from rl_scan.tuning.driver import make_run_spec
 
 
@@ -82,6 +83,30 @@ def test_unknown_conditions_are_named_before_ray_starts(tmp_path, capsys, argv, 
     code = main([*argv, "--preset", "smoke", "--results", str(tmp_path)])
     assert code == 2 and message in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_the_search_keeps_a_resumed_trials_first_values_and_ignores_it_once_finished(
+        tmp_path):
+    """A resumed trial repeats the iterations after its checkpoint: Optuna keeps the first
+    value of each step, silently; results after Optuna finished the trial are dropped."""
+    import optuna
+    from optuna.distributions import CategoricalDistribution
+
+    storage = optuna.storages.RDBStorage(f"sqlite:///{tmp_path / 'optuna.db'}")
+    searcher = resumable_optuna_search(
+        space={"seed": CategoricalDistribution([0, 1])}, metric="score", mode="max",
+        study_name="s", storage=storage)
+    searcher.suggest("t")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for step, score in [(1, 0.1), (2, 0.2), (2, 0.9), (3, 0.3)]:
+            searcher.on_trial_result("t", {"score": score, "training_iteration": step})
+    searcher.on_trial_complete("t", {"score": 0.3, "training_iteration": 3})
+    searcher.on_trial_result("t", {"score": 0.8, "training_iteration": 4})
+    searcher.on_trial_complete("t", {"score": 0.8, "training_iteration": 4})
+    (trial,) = optuna.load_study(study_name="s", storage=storage).trials
+    assert trial.intermediate_values == {1: 0.1, 2: 0.2, 3: 0.3}
+    assert trial.value == 0.3
 
 
 def test_grid_size_is_conditions_times_seeds():

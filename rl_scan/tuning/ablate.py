@@ -49,18 +49,28 @@ def resumable_optuna_search(**kwargs):
     A driver killed after Optuna recorded a trial COMPLETE but before Tune saved its own
     state makes the resumed Tune run that trial again (to its end, from its last
     checkpoint); OptunaSearch would then raise UpdateFinishedTrialError and stop the study.
+    A trial resumed from a checkpoint repeats the iterations after it: Optuna keeps the
+    first value of a step (and warns on each repeat), so repeats are not reported.
     """
+    from ray.tune.result import TRAINING_ITERATION
     from ray.tune.search.optuna import OptunaSearch
 
     class ResumableOptunaSearch(OptunaSearch):
-        def _finished_in_optuna(self, trial_id: str) -> bool:
+        def _stored(self, trial_id: str):
+            """Optuna's stored copy of the trial, None if Optuna has not seen it."""
             ot_trial = self._ot_trials.get(trial_id)
-            return ot_trial is not None and ot_trial.storage.get_trial(
-                ot_trial._trial_id).state.is_finished()
+            return ot_trial and ot_trial.storage.get_trial(ot_trial._trial_id)
+
+        def _finished_in_optuna(self, trial_id: str) -> bool:
+            stored = self._stored(trial_id)
+            return stored is not None and stored.state.is_finished()
 
         def on_trial_result(self, trial_id, result):
-            if not self._finished_in_optuna(trial_id):
-                super().on_trial_result(trial_id, result)
+            stored = self._stored(trial_id)
+            if stored is not None and (stored.state.is_finished() or result.get(
+                    TRAINING_ITERATION) in stored.intermediate_values):
+                return
+            super().on_trial_result(trial_id, result)
 
         def on_trial_complete(self, trial_id, result=None, error=False):
             if not self._finished_in_optuna(trial_id):
