@@ -4,6 +4,9 @@ COVERAGE = "coverage"  # scanned cells / all cells at episode end (paper: scanni
 SUCCESS = "success"  # 1.0 if coverage >= SUCCESS_COVERAGE else 0.0
 SUCCESS_COVERAGE = 0.95
 STEPS_TO = {0.5: "steps_to_50", 0.8: "steps_to_80", 0.95: "steps_to_95"}  # NaN if not reached
+REACHED = {key: "reached_" + key[len("steps_to_"):] for key in STEPS_TO.values()}
+"""An evaluation's share of episodes that reached a ``STEPS_TO`` coverage (whose value there
+is the mean over those episodes)."""
 COLLISIONS = "collisions"  # all robots
 COLLISIONS_BY_KIND = {"wheeled": "collisions_wheeled", "quad": "collisions_quad"}
 RETURN_BY_KIND = {"wheeled": "return_wheeled", "quad": "return_quad"}  # mean over robots of a kind

@@ -66,7 +66,7 @@ class ScanMetricsCallback(RLlibCallback):
         for key, value in summary.items():
             if key in M.STEPS_TO.values():
                 reached = not math.isnan(value)
-                metrics_logger.log_value(scan_key(f"reached_{key[len('steps_to_'):]}"),
+                metrics_logger.log_value(scan_key(M.REACHED[key]),
                                          float(reached), reduce="mean", window=WINDOW)
                 if not reached:
                     continue

@@ -101,6 +101,7 @@ def condition_rows(runs: list[RunRecord]) -> list[dict[str, Any]]:
             "converged": (not math.isnan(mean)) and mean >= CONVERGED,
             "speed": float(np.mean(censored)) if censored else math.nan,
             "speed_reached": len(reached), "finals": finals,
+            "scan_steps": [r.final_scan_steps for r in scored],
             "tasks": [r.scenario for r in scored]})
     return rows
 

@@ -53,6 +53,20 @@ class RunRecord:
     def final_success(self) -> float:
         return float(self.evals[-1].get("success", math.nan)) if self.evals else math.nan
 
+    @property
+    def final_scan_steps(self) -> float:
+        """Episode steps to 95 % coverage at the final evaluation, an episode that never
+        gets there counted as its whole length (censored; NaN without the figures): how fast
+        the trained team scans, which final coverage stops showing once every team ends
+        near 100 %."""
+        last = self.evals[-1] if self.evals else {}
+        key = M.STEPS_TO[M.SUCCESS_COVERAGE]
+        reached, length = last.get(M.REACHED[key]), last.get(M.EPISODE_STEPS)
+        if reached is None or length is None:
+            return math.nan
+        steps = float(last[key]) if reached else 0.0
+        return reached * steps + (1.0 - reached) * float(length)
+
     def steps_to(self, coverage: float) -> float:
         """Env steps of the first of two consecutive evaluations at or above ``coverage``
         (``metrics.steps_to_reach``; NaN if never): the report's learning speed."""

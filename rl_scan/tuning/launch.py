@@ -221,7 +221,7 @@ def evaluate_start_weights(checkpoint: Path, env_cfg, episodes: int, seed: int) 
     for key in M.EPISODE_METRICS:
         values = np.array([m[key] for m in episodes_metrics], dtype=float)
         if key in M.STEPS_TO.values():  # as the callback: the mean over runs reaching it
-            entry["reached_" + key[len("steps_to_"):]] = float(np.mean(~np.isnan(values)))
+            entry[M.REACHED[key]] = float(np.mean(~np.isnan(values)))
             values = values[~np.isnan(values)]
         if len(values):
             entry[key] = float(values.mean())
