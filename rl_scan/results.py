@@ -23,7 +23,6 @@ and the command line read results without starting it).
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from pathlib import Path
@@ -38,6 +37,7 @@ TUNE_DIR = "tune"
 TRIALS_DIR = "trials"  # a study's run folders, one per trial, named by Tune's trial id
 TRAIN_TRIAL = "trial"  # the Tune trial folder of a single run: RUN/TUNE_DIR/TRAIN_TRIAL
 PROGRESS_FILE = "progress.csv"  # Tune's, one row per iteration
+RESULT_FILE = "result.json"  # Tune's, one JSON result per line: what the reports read
 STUDY_FILE = "study.yaml"
 OPTUNA_DB = "optuna.db"
 PROTOCOL_FILE = "protocol.yaml"  # a meta-MRSS experiment's plan (methods, tests, seeds, runs)
@@ -220,14 +220,35 @@ def run_meta_of(path: Path) -> dict[str, Any]:
     return (read_yaml(folder / RUN_FILE) or {}) if folder else {}
 
 
-def progress_rows(folder: Path) -> list[dict[str, str]]:
-    """Every Tune progress row anywhere under ``folder`` (Tune flattens nested results
-    with "/": ``learners/critic/explained_variance_v``)."""
-    rows: list[dict[str, str]] = []
-    for path in sorted(Path(folder).glob(f"**/{PROGRESS_FILE}")):
+def progress_rows(folder: Path) -> list[dict[str, Any]]:
+    """Every Tune result anywhere under ``folder``, one per iteration, flattened with "/"
+    as Tune's progress.csv names columns (``learners/critic/explained_variance_v``).
+
+    Read from RESULT_FILE, not PROGRESS_FILE: after a restore Tune appends CSV rows with
+    the first new result's keys under the old header, so those rows do not line up with
+    it. Iterations repeated after a restore keep their last result (the run continued
+    from there)."""
+    rows: list[dict[str, Any]] = []
+    for path in sorted(Path(folder).glob(f"**/{RESULT_FILE}")):
+        by_iteration: dict[Any, dict[str, Any]] = {}
         with open(path) as f:
-            rows += list(csv.DictReader(f))
+            for i, line in enumerate(f):
+                if line.strip():
+                    result = json.loads(line)
+                    result.pop("config", None)
+                    by_iteration[result.get("training_iteration", -i)] = _flat(result)
+        rows += by_iteration.values()
     return rows
+
+
+def _flat(result: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in result.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}/"))
+        else:
+            out[prefix + key] = value
+    return out
 
 
 def critic_diagnostics(rows: list[dict[str, str]]) -> dict[str, list[tuple[int, float]]]:

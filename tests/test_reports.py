@@ -107,9 +107,8 @@ def _study(root, finals: dict[str, list[float]], episodes: int = 3, kind: str = 
             (run / R.EVAL_FILE).write_text(json.dumps(evals))
             tune_trial = R.tune_trial_dir(run)
             tune_trial.mkdir(parents=True)
-            (tune_trial / R.PROGRESS_FILE).write_text(
-                f"training_iteration,{R.ENV_STEPS},time_total_s\n"
-                "10,40000,100.0\n")
+            (tune_trial / R.RESULT_FILE).write_text(json.dumps(
+                {"training_iteration": 10, R.ENV_STEPS: 40000, "time_total_s": 100.0}) + "\n")
     return study
 
 
@@ -241,7 +240,7 @@ def test_loose_runs_get_speed_poca_vs_ppo_and_the_secondary_best_table(tmp_path)
     # best checkpoint of poca_s1: mean 0.925, sample std 0.0645, 2 of 4 successes
     assert "| poca_s1 | poca on ablation | 60,000 | 96.0 | 92.5 ± 6.5 | 50.0 [15.0, 85.0] (4) |" \
         in md
-    assert "poca_s0 |" not in md.split("Secondary")[1].split("| run | env steps")[0]
+    assert "poca_s0 |" not in md.split("Secondary")[1].split("| run | condition, seed")[0]
     assert "core 25,997, RLlib env 18,203, PettingZoo 18,139 env steps/s" in md
     assert "(load 0.15) | poca/fast: 604 env steps/s, PSS 1,877 MB |" in md
 
@@ -311,15 +310,15 @@ def test_curve_band_aligns_evaluations_a_few_steps_apart():
 def test_critic_diagnostics_are_read_from_progress_and_tabled(tmp_path):
     """POCA's explained variances (Tune's flattened learners/<module>/<key> columns) per
     condition: last value averaged over runs, and when V first explained half."""
-    ev_v, ev_b = f"{R.LEARNERS}/critic/{R.EV_VALUE}", f"{R.LEARNERS}/quad/{R.EV_BASELINE}"
     for seed, values in enumerate([[(0.1, 0.2), (0.6, 0.7), (0.8, 0.9)],
                                    [(0.2, 0.1), (0.4, 0.3), (0.55, 0.5)]]):
         _run(tmp_path, f"poca_s{seed}", "poca", seed, [0.5, 0.7, 0.9])
-        lines = [f"training_iteration,{R.ENV_STEPS},time_total_s,{ev_v},{ev_b}"]
-        lines += [f"{i + 1},{20000 * (i + 1)},{10 * (i + 1)},{v},{b}"
-                  for i, (v, b) in enumerate(values)]
+        lines = [json.dumps({"training_iteration": i + 1, R.ENV_STEPS: 20000 * (i + 1),
+                             "time_total_s": 10 * (i + 1), R.LEARNERS: {
+                                 "critic": {R.EV_VALUE: v}, "quad": {R.EV_BASELINE: b}}})
+                 for i, (v, b) in enumerate(values)]
         trial = tmp_path / f"poca_s{seed}" / R.TUNE_DIR / R.TRAIN_TRIAL
-        (trial / R.PROGRESS_FILE).write_text("\n".join(lines) + "\n")
+        (trial / R.RESULT_FILE).write_text("\n".join(lines) + "\n")
     runs = collect(tmp_path).runs
     assert runs[0].critic == {"V": [(20000, 0.1), (40000, 0.6), (60000, 0.8)],
                               "b_quad": [(20000, 0.2), (40000, 0.7), (60000, 0.9)]}

@@ -365,10 +365,11 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
             md += ["", f"Scripted greedy team on {scenarios[0]}: {100 * ref:.1f} % coverage."]
         md += improvement_lines(spec, rows)
         if data.rebuilt_from != MARL_EVAL_FILE:  # which keeps no wall times
-            md += ["", "| run | env steps | wall time | env steps/s (end to end) |",
-                   "|---|---|---|---|"]
-            md += [f"| {r.path.name} | {r.env_steps:,} | {_fmt(r.time_total_s, False)} s | "
-                   f"{_fmt(r.env_steps_per_s, False)} |" for r in runs]
+            md += ["", "| run | condition, seed | env steps | wall time | env steps/s (end to "
+                   "end) |", "|---|---|---|---|---|"]
+            md += [f"| {r.path.name} | {r.condition}, {r.seed} | {r.env_steps:,} | "
+                   f"{_fmt(r.time_total_s, False)} s | {_fmt(r.env_steps_per_s, False)} |"
+                   for r in sorted(runs, key=lambda r: (r.condition, r.seed))]
         md.append("")
     md += maps
     hw = hardware()

@@ -1,11 +1,14 @@
-"""Scan speed in reports: episode steps to 95 % at a run's final evaluation, censored at the
-episode length, and P(X faster than Y) for a study's pairs (hand-computed values)."""
+"""What reports read from a run: Tune's results of a restored trial, and scan speed (episode
+steps to 95 % at the final evaluation, censored at the episode length) with P(X faster
+than Y) for a study's pairs (hand-computed values)."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
+from rl_scan import results as R
 from rl_scan.reports.build import condition_rows
 from rl_scan.reports.claims import scan_speed_lines
 from rl_scan.reports.collect import RunRecord
@@ -53,3 +56,24 @@ def test_equal_scan_speeds_are_a_coin_flip():
     (line,) = [x for x in scan_speed_lines(STUDIES["team"].report, condition_rows(runs))
                if x.startswith("| 2,2 vs 0,4")]
     assert line.endswith("| 0.50 [0.50, 0.50] |")
+
+
+def test_a_restored_trials_results_are_read_by_key_with_its_repeated_iterations_once(tmp_path):
+    """Tune appends a restored trial's progress.csv rows under the old header with other
+    columns; result.json keeps every key. Iterations 2-3 ran twice (killed after 3,
+    restored from the checkpoint at 1): the second run of them is what training went on
+    from."""
+    ev = f"{R.LEARNERS}/critic/{R.EV_VALUE}"
+    first = [{"training_iteration": i, R.ENV_STEPS: 100 * i, "time_total_s": 10.0 * i}
+             for i in (1, 2, 3)]
+    restored = [{"training_iteration": i, R.ENV_STEPS: 100 * i, "time_total_s": 10.0 * i + 5,
+                 "evaluation": {"coverage": 0.5}, R.LEARNERS: {"critic": {R.EV_VALUE: i / 10}}}
+                for i in (2, 3, 4)]
+    (tmp_path / R.RESULT_FILE).write_text(
+        "".join(json.dumps({**r, "config": {"lr": 1}}) + "\n" for r in first + restored))
+    rows = R.progress_rows(tmp_path)
+    assert [r["training_iteration"] for r in rows] == [1, 2, 3, 4]
+    assert rows[1]["time_total_s"] == 25.0 and rows[1][ev] == 0.2
+    assert "config/lr" not in rows[0] and rows[3]["evaluation/coverage"] == 0.5
+    assert R.progress_tail(tmp_path, rows) == (400, 45.0)
+    assert R.critic_diagnostics(rows) == {"V": [(200, 0.2), (300, 0.3), (400, 0.4)]}
