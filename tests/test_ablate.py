@@ -18,7 +18,7 @@ from rl_scan import results as R
 from rl_scan.cli import main
 from rl_scan.studies import STUDIES, TrialRun
 from rl_scan.tuning.ablate import only_conditions, resumable_optuna_search, search_space
-from rl_scan.tuning.driver import make_run_spec
+from rl_scan.tuning.driver import RunProgress, make_run_spec
 
 
 def test_conditions_map_to_runs():
@@ -170,3 +170,14 @@ def test_smoke_study_is_killed_and_resumed_to_completion(tmp_path):
         condition = R.read_yaml(run / R.RUN_FILE)["params"]["condition"]
         value = next(t.value for t in done if t.params["condition"] == condition)
         assert value == pytest.approx(evals[-1]["coverage"])  # Optuna got the final score
+
+
+def test_the_finished_count_includes_trials_a_resume_restored_as_done(capsys):
+    from ray.tune.experiment import Trial
+
+    trials = [Trial("t", config={"condition": c, "seed": 0}, stub=True)
+              for c in ("2,2", "0,4", "4,0")]
+    trials[0].set_status(Trial.TERMINATED)  # finished before the driver was killed
+    progress = RunProgress(1000, study="team", trials=3)
+    progress.on_trial_complete(0, trials, trials[2])
+    assert capsys.readouterr().out.startswith("finished 2/3: condition=4,0, seed=0")

@@ -277,7 +277,7 @@ class RunProgress(Callback):
                  study_dir: Path | None = None, spec: RunSpec | None = None,
                  study: str | None = None, trials: int = 1) -> None:
         self.total, self.run_dir, self.study_dir = total_steps, run_dir, study_dir
-        self.spec, self.study, self.trials, self.finished = spec, study, trials, 0
+        self.spec, self.study, self.trials = spec, study, trials
 
     def _folder(self, trial) -> Path:
         return self.run_dir or R.trial_run_dir(self.study_dir, trial.trial_id)
@@ -310,9 +310,9 @@ class RunProgress(Callback):
         print(line, flush=True)
 
     def on_trial_complete(self, iteration, trials, trial, **info) -> None:
-        if self.study is not None:
-            self.finished += 1
-            print(f"finished {self.finished}/{self.trials}: {_label(trial.config)} eval "
+        if self.study is not None:  # trials: all of Tune's, those a resume restored too
+            done = 1 + sum(t.status == "TERMINATED" for t in trials if t is not trial)
+            print(f"finished {done}/{self.trials}: {_label(trial.config)} eval "
                   f"coverage {trial.last_result.get(R.EVAL_SCORE, math.nan):.3f}", flush=True)
 
 
