@@ -242,6 +242,7 @@ def progress_rows(folder: Path) -> list[dict[str, Any]]:
 
 
 def _flat(result: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested result as one level, keys joined with "/" (Tune's flatten_dict)."""
     out: dict[str, Any] = {}
     for key, value in result.items():
         if isinstance(value, dict):
@@ -251,7 +252,7 @@ def _flat(result: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def critic_diagnostics(rows: list[dict[str, str]]) -> dict[str, list[tuple[int, float]]]:
+def critic_diagnostics(rows: list[dict[str, Any]]) -> dict[str, list[tuple[int, float]]]:
     """POCA's explained variances over training from progress rows: ``V`` and ``b_<kind>``
     -> [(env steps, value)] (empty for runs without a POCA critic)."""
     out: dict[str, list[tuple[int, float]]] = {}
@@ -267,7 +268,7 @@ def critic_diagnostics(rows: list[dict[str, str]]) -> dict[str, list[tuple[int, 
     return out
 
 
-def progress_tail(folder: Path, rows: list[dict[str, str]] | None = None
+def progress_tail(folder: Path, rows: list[dict[str, Any]] | None = None
                   ) -> tuple[int, float]:
     """(env steps, wall seconds) of the last Tune progress row anywhere under ``folder``
     (or of ``rows`` already read from it)."""
