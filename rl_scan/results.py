@@ -23,6 +23,7 @@ and the command line read results without starting it).
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -221,24 +222,41 @@ def run_meta_of(path: Path) -> dict[str, Any]:
 
 
 def progress_rows(folder: Path) -> list[dict[str, Any]]:
-    """Every Tune result anywhere under ``folder``, one per iteration, flattened with "/"
-    as Tune's progress.csv names columns (``learners/critic/explained_variance_v``).
+    """Every Tune result of the trials anywhere under ``folder``, one per iteration in
+    order, flattened with "/" as progress.csv names columns
+    (``learners/critic/explained_variance_v``).
 
-    Read from RESULT_FILE, not PROGRESS_FILE: after a restore Tune appends CSV rows with
-    the first new result's keys under the old header, so those rows do not line up with
-    it. Iterations repeated after a restore keep their last result (the run continued
-    from there)."""
+    Neither of Tune's logs holds every iteration. After a driver resume Tune appends
+    PROGRESS_FILE rows with the first new result's keys under the file's old header, so
+    those rows do not line up with it (they are skipped where their length shows it). After
+    a trial restore, RESULT_FILE is copied back from a storage copy taken before the last
+    result was logged, losing it. So each iteration comes from RESULT_FILE where it is
+    there and from an aligned PROGRESS_FILE row otherwise; an iteration logged twice (run
+    again after a restore) keeps its last result, the one training went on from."""
+    trials = sorted({p.parent for name in (RESULT_FILE, PROGRESS_FILE)
+                     for p in Path(folder).glob(f"**/{name}")})
     rows: list[dict[str, Any]] = []
-    for path in sorted(Path(folder).glob(f"**/{RESULT_FILE}")):
-        by_iteration: dict[Any, dict[str, Any]] = {}
-        with open(path) as f:
-            for i, line in enumerate(f):
-                if line.strip():
+    for trial in trials:
+        by_iteration = {int(float(r[ITERATION])): r for r in _aligned_csv(trial / PROGRESS_FILE)
+                        if r.get(ITERATION)}
+        if (trial / RESULT_FILE).is_file():
+            with open(trial / RESULT_FILE) as f:
+                for line in filter(str.strip, f):
                     result = json.loads(line)
                     result.pop("config", None)
-                    by_iteration[result.get("training_iteration", -i)] = _flat(result)
-        rows += by_iteration.values()
+                    if ITERATION in result:
+                        by_iteration[int(result[ITERATION])] = _flat(result)
+        rows += [by_iteration[i] for i in sorted(by_iteration)]
     return rows
+
+
+def _aligned_csv(path: Path) -> list[dict[str, str]]:
+    """The rows of a CSV file that have as many fields as its header."""
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        header, *rows = list(csv.reader(f)) or [[]]
+    return [dict(zip(header, row)) for row in rows if len(row) == len(header)]
 
 
 def _flat(result: dict[str, Any], prefix: str = "") -> dict[str, Any]:

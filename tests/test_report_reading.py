@@ -77,3 +77,19 @@ def test_a_restored_trials_results_are_read_by_key_with_its_repeated_iterations_
     assert "config/lr" not in rows[0] and rows[3]["evaluation/coverage"] == 0.5
     assert R.progress_tail(tmp_path, rows) == (400, 45.0)
     assert R.critic_diagnostics(rows) == {"V": [(200, 0.2), (300, 0.3), (400, 0.4)]}
+
+
+def test_iterations_missing_from_result_json_come_from_progress_csvs_aligned_rows(tmp_path):
+    """A trial restore copies result.json back from a copy taken before its last result
+    (iteration 1 lost here); progress.csv still has it. A row longer than the header (a
+    driver resume) cannot be read and is skipped."""
+    (tmp_path / R.PROGRESS_FILE).write_text(
+        f"training_iteration,{R.ENV_STEPS},time_total_s\n1,100,10.0\n"
+        "2,200,20.0,0.5,extra\n")
+    (tmp_path / R.RESULT_FILE).write_text("".join(json.dumps(
+        {"training_iteration": i, R.ENV_STEPS: 100 * i, "time_total_s": 10.0 * i + 1}) + "\n"
+        for i in (2, 3)))
+    rows = R.progress_rows(tmp_path)
+    assert [int(float(r["training_iteration"])) for r in rows] == [1, 2, 3]
+    assert [float(r["time_total_s"]) for r in rows] == [10.0, 21.0, 31.0]
+    assert R.progress_tail(tmp_path, rows) == (300, 31.0)

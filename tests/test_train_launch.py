@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -22,9 +23,8 @@ from rl_scan.tuning.presets import get_preset
 
 
 def _progress(run_dir: Path) -> list[dict]:
-    """Every result Tune logged, repeats included (progress.csv misaligns after a restore)."""
-    with open(run_dir / R.TUNE_DIR / R.TRAIN_TRIAL / R.RESULT_FILE) as f:
-        return [json.loads(line) for line in f if line.strip()]
+    with open(run_dir / R.TUNE_DIR / R.TRAIN_TRIAL / R.PROGRESS_FILE) as f:
+        return list(csv.DictReader(f))
 
 
 @pytest.fixture(scope="module")
