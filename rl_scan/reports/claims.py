@@ -89,10 +89,11 @@ def scan_speed_lines(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[str]:
         (xa, ta), (xb, tb) = by_cond.get(a, ([], [])), by_cond.get(b, ([], []))
         if not xa or not xb or any(math.isnan(v) for v in xa + xb):
             continue
-        p = probability_of_improvement([-v for v in xa], [-v for v in xb], ta, tb)
+        faster = ([-v for v in xa], [-v for v in xb], ta, tb)  # fewer steps scores higher
+        p = probability_of_improvement(*faster)
         if math.isnan(p):
             continue
-        lo, hi = probability_of_improvement_ci([-v for v in xa], [-v for v in xb], ta, tb)
+        lo, hi = probability_of_improvement_ci(*faster)
         (ma, sa), (mb, sb) = mean_std(xa), mean_std(xb)
         lines.append(f"| {a} vs {b} | {ma:.0f} ± {sa:.0f} | {mb:.0f} ± {sb:.0f} | "
                      f"{p:.2f} [{lo:.2f}, {hi:.2f}] |")
