@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -159,6 +161,40 @@ def test_after_a_failure_no_new_job_starts_and_the_error_is_raised():
     started = {n for e, n in log if e == "start"}
     assert started == {"pre", "other"}
     assert ("end", "other") in log  # the running job was let finish
+
+
+def _exited(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0] == "Z"
+    except (OSError, IndexError):
+        return True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal")
+def test_a_run_whose_driver_died_exits_even_when_its_graceful_stop_hangs(tmp_path):
+    """The driver is SIGKILLed; its run child ignores the SIGINT (a hung Tune stop) and must
+    still exit once the grace period is over, its threads' stacks in its log."""
+    import subprocess
+    import time
+
+    child = ("import os, signal, sys, time; import rl_scan.tuning.jobs as J; "
+             "J.STOP_GRACE_S = 1.0; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+             "J._stop_with_parent(int(sys.argv[1])); print(os.getpid(), flush=True); "
+             "time.sleep(120)")
+    log = tmp_path / "run.log"
+    driver = subprocess.Popen(["bash", "-c", f'"{sys.executable}" -c "$1" $$ 2>"{log}"; :',
+                               "bash", child], stdout=subprocess.PIPE, text=True)
+    pid = int(driver.stdout.readline())
+    driver.kill()
+    driver.wait()
+    killed = time.monotonic()
+    while not _exited(pid) and time.monotonic() - killed < 30:
+        time.sleep(0.1)
+    assert _exited(pid), "the run outlived its driver by 30 s"
+    assert time.monotonic() - killed >= 1.0  # it was given the grace period
+    text = log.read_text()
+    assert "did not stop within 1 s; exiting" in text
+    assert "most recent call first" in text and 'File "<string>", line 1' in text  # main
 
 
 def test_curve_metrics_by_hand():

@@ -8,6 +8,7 @@ for why), each logging its stderr to ``logs/`` beside its run folder.
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import math
 import os
@@ -113,15 +114,32 @@ def _str_or_none(value: Any) -> str | None:
     return None if value is None else str(value)
 
 
+STOP_GRACE_S = 60.0  # a run whose driver died must stop within this (see _stop_with_parent)
+
+
 def _stop_with_parent(parent_pid: int) -> None:
     """SIGINT this process when its parent dies (Linux), so a killed driver's runs stop as
-    after Ctrl+C (Tune keeps their state) instead of running on unowned."""
+    after Ctrl+C (Tune keeps their state) instead of running on unowned. Tune's graceful
+    stop can wait on a cluster that lost a node; nobody is left to press Ctrl+C twice, so
+    a watchdog exits ``STOP_GRACE_S`` after the parent's death, writing every thread's
+    stack to the run's log first (resuming works as after a SIGKILL)."""
     if sys.platform.startswith("linux"):
         import ctypes
 
         ctypes.CDLL(None).prctl(1, signal.SIGINT)  # PR_SET_PDEATHSIG
     if os.getppid() != parent_pid:  # it died before the line above
         raise KeyboardInterrupt
+
+    def watchdog() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        time.sleep(STOP_GRACE_S)
+        print(f"the driver (pid {parent_pid}) died and this run did not stop within "
+              f"{STOP_GRACE_S:.0f} s; exiting. Its threads:", file=sys.stderr, flush=True)
+        faulthandler.dump_traceback(all_threads=True)
+        os._exit(130)
+
+    threading.Thread(target=watchdog, name="stop-with-parent", daemon=True).start()
 
 
 def child_main(spec_json: str) -> int:
