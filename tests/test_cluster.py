@@ -26,7 +26,7 @@ import pytest
 from rl_scan import results as R
 from rl_scan.tuning.jobs import STOP_GRACE_S
 
-pytestmark = pytest.mark.cluster
+pytestmark = [pytest.mark.cluster, pytest.mark.slow]  # minutes each: `pytest -m slow`
 RAY = str(Path(sys.executable).parent / "ray")
 
 
