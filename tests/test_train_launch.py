@@ -178,7 +178,10 @@ def test_a_run_gets_the_cpus_it_reserves(ray_session, tmp_path, overrides, threa
 
 @pytest.mark.slow
 def test_sigkill_then_resume_continues_from_the_last_checkpoint(tmp_path):
-    """A run killed mid-training resumes from its last checkpoint, counters intact."""
+    """A run killed mid-training resumes from a checkpoint, not from scratch, counters
+    intact. The checkpoint is the last one Tune's saved state names: a SIGKILL just after a
+    checkpoint is written can land before Tune records it (seen idle in CI), and then the
+    iterations after the recorded one are run again; reports keep each one's last result."""
     cmd = [sys.executable, "-m", "rl_scan.cli", "train", "--algo", "ppo", "--preset", "smoke",
            "--total-env-steps", "4000", "--results", str(tmp_path), "--name", "run"]
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
@@ -198,8 +201,14 @@ def test_sigkill_then_resume_continues_from_the_last_checkpoint(tmp_path):
     iters = [int(r["training_iteration"]) for r in rows]
     steps = [int(float(r[R.ENV_STEPS])) for r in rows]
     assert iters[-1] == 10 and steps[-1] == 4000
-    # A restart from scratch would log iterations 1, 2, ... (and 400 env steps) again.
-    assert iters == sorted(set(iters)) and steps == sorted(set(steps))
+    # A restart from scratch would log iteration 1 (and 400 env steps) again; a restore runs
+    # again only iterations after a checkpoint, at most the ones since the last on disk.
+    assert iters.count(1) == 1 and steps.count(400) == 1
+    repeated = {i for i in iters if iters.count(i) > 1}
+    assert repeated <= set(range(2, restored_from + 1)), (repeated, restored_from)
+    merged = R.progress_rows(tmp_path / "run")
+    assert [int(r[R.ITERATION]) for r in merged] == list(range(1, 11))
+    assert [int(float(r[R.ENV_STEPS])) for r in merged] == [400 * k for k in range(1, 11)]
     evals = json.loads((tmp_path / "run" / R.EVAL_FILE).read_text())
     logged = [e["training_iteration"] for e in evals]
     assert logged == sorted(set(logged)) and logged[-1] == 10
