@@ -177,7 +177,7 @@ def test_a_run_gets_the_cpus_it_reserves(ray_session, tmp_path, overrides, threa
 
 
 @pytest.mark.slow
-def test_sigkill_then_resume_continues_from_the_last_checkpoint(tmp_path):
+def test_sigkill_then_resume_continues_from_a_checkpoint(tmp_path):
     """A run killed mid-training resumes from a checkpoint, not from scratch, counters
     intact. The checkpoint is the last one Tune's saved state names: a SIGKILL just after a
     checkpoint is written can land before Tune records it (seen idle in CI), and then the
