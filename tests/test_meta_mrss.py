@@ -7,14 +7,12 @@ import json
 import math
 import os
 import sys
-from pathlib import Path
 
 import pytest
 
 from rl_scan import results as R
 from rl_scan.cli import main
 from rl_scan.config import ConfigError
-from rl_scan.tuning.jobs import Job, run_jobs
 from rl_scan.tuning.meta_mrss import (
     PROTOCOLS,
     check_jobs,
@@ -69,132 +67,6 @@ def test_every_paper_run_is_checked_up_front_and_meta_poca_samples_locally(tmp_p
     with pytest.raises(ConfigError, match="comm_scheme"):
         check_jobs(plan_jobs(tmp_path, ["poca"], ["test:0"], 1, PROTOCOLS["smoke"],
                              {"comm_scheme": 9}))
-
-
-class FakeJob(Job):
-    """A job that records when it ran instead of training."""
-
-    def __init__(self, name, log, after=None, action=None):
-        super().__init__(name, None, name, {}, after)
-        self.log, self.action = log, action
-
-    def run(self, child=False, address=None):
-        self.log.append(("start", self.name))
-        if self.action:
-            self.action()
-        self.log.append(("end", self.name))
-
-
-def test_a_finished_run_is_skipped_when_the_experiment_is_re_run(tmp_path):
-    """A run folder with DONE is returned as it is: no training is started (this job's
-    algorithm does not exist, so starting one would raise)."""
-    done = tmp_path / "poca_test0_s0"
-    done.mkdir()
-    (done / R.DONE).write_text("finished\n")
-    (done / R.EVAL_FILE).write_text("[]")
-    job = Job("poca test:0 s0", tmp_path, done.name, {"algo": "no-such-algo", "env_config": {}})
-    assert job.run() == done and (done / R.EVAL_FILE).read_text() == "[]"
-    with pytest.raises(ConfigError, match="no-such-algo"):  # the same job, not finished
-        Job("poca test:1 s0", tmp_path, "poca_test1_s0",
-            {"algo": "no-such-algo", "env_config": {}}).run()
-
-
-def test_a_re_run_waits_for_a_run_still_being_written_by_another_process(tmp_path):
-    """A killed experiment's run may still be stopping when the command is run again: the
-    new process waits for its lock and, finding the run finished, starts nothing."""
-    import subprocess
-    import sys
-    import time
-
-    holder = subprocess.Popen([sys.executable, "-c", (
-        "import fcntl, pathlib, sys, time\n"
-        f"root = pathlib.Path({str(tmp_path)!r})\n"
-        "f = open(root / '.poca_test0_s0.lock', 'a+'); fcntl.flock(f, fcntl.LOCK_EX)\n"
-        "print('locked', flush=True); time.sleep(2)\n"
-        "(root / 'poca_test0_s0').mkdir(); (root / 'poca_test0_s0' / 'DONE').write_text('x')\n")],
-        stdout=subprocess.PIPE, text=True)
-    assert holder.stdout.readline().strip() == "locked"
-    start = time.monotonic()
-    job = Job("poca test:0 s0", tmp_path, "poca_test0_s0",
-              {"algo": "no-such-algo", "env_config": {}})  # training would raise
-    assert job.run() == tmp_path / "poca_test0_s0"
-    assert time.monotonic() - start > 1.0  # it waited for the other process
-    holder.wait()
-
-
-def test_jobs_run_in_parallel_and_wait_for_their_prerequisite():
-    import threading
-
-    from rich.console import Console
-
-    log, both = [], threading.Barrier(2, timeout=30)
-    pre = FakeJob("pre", log, action=both.wait)  # pre and free must overlap, or time out
-    jobs = [pre, FakeJob("adapt", log, after=pre), FakeJob("free", log, action=both.wait)]
-    run_jobs(jobs, workers=2, console=Console(quiet=True))
-    assert log.index(("end", "pre")) < log.index(("start", "adapt"))
-    assert sorted(log) == sorted([(e, n) for n in ("pre", "adapt", "free")
-                                  for e in ("start", "end")])
-
-
-def test_after_a_failure_no_new_job_starts_and_the_error_is_raised():
-    import threading
-    import time
-
-    from rich.console import Console
-
-    failing = threading.Event()
-
-    def boom():
-        failing.set()
-        raise RuntimeError("env crashed")
-
-    def after_boom():  # still running when the failure is seen
-        failing.wait(30)
-        time.sleep(0.3)
-
-    log = []
-    pre = FakeJob("pre", log, action=boom)
-    jobs = [pre, FakeJob("adapt", log, after=pre), FakeJob("other", log, action=after_boom),
-            FakeJob("later", log)]
-    with pytest.raises(RuntimeError, match="env crashed"):
-        run_jobs(jobs, workers=2, console=Console(quiet=True))
-    started = {n for e, n in log if e == "start"}
-    assert started == {"pre", "other"}
-    assert ("end", "other") in log  # the running job was let finish
-
-
-def _exited(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0] == "Z"
-    except (OSError, IndexError):
-        return True
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal")
-def test_a_run_whose_driver_died_exits_even_when_its_graceful_stop_hangs(tmp_path):
-    """The driver is SIGKILLed; its run child ignores the SIGINT (a hung Tune stop) and must
-    still exit once the grace period is over, its threads' stacks in its log."""
-    import subprocess
-    import time
-
-    child = ("import os, signal, sys, time; import rl_scan.tuning.jobs as J; "
-             "J.STOP_GRACE_S = 1.0; signal.signal(signal.SIGINT, signal.SIG_IGN); "
-             "J._stop_with_parent(int(sys.argv[1])); print(os.getpid(), flush=True); "
-             "time.sleep(120)")
-    log = tmp_path / "run.log"
-    driver = subprocess.Popen(["bash", "-c", f'"{sys.executable}" -c "$1" $$ 2>"{log}"; :',
-                               "bash", child], stdout=subprocess.PIPE, text=True)
-    pid = int(driver.stdout.readline())
-    driver.kill()
-    driver.wait()
-    killed = time.monotonic()
-    while not _exited(pid) and time.monotonic() - killed < 30:
-        time.sleep(0.1)
-    assert _exited(pid), "the run outlived its driver by 30 s"
-    assert time.monotonic() - killed >= 1.0  # it was given the grace period
-    text = log.read_text()
-    assert "did not stop within 1 s; exiting" in text
-    assert "most recent call first" in text and 'File "<string>", line 1' in text  # main
 
 
 def test_curve_metrics_by_hand():
@@ -346,7 +218,6 @@ def test_ctrl_c_stops_parallel_runs_unfinished_and_a_rerun_completes_them(tmp_pa
     import os
     import signal
     import subprocess
-    import sys
     import time
 
     cmd = [sys.executable, "-m", "rl_scan.cli", "experiment", "meta-mrss", "--preset", "smoke",

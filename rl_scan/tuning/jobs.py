@@ -2,8 +2,9 @@
 
 A ``Job`` is one ``launch.train`` run that is skipped once finished (a ``DONE`` file) and
 resumed if interrupted; ``run_jobs`` runs a list of them in order, several at a time,
-each after the job it waits for. Concurrent runs are child processes (see ``run_jobs``
-for why), each logging its stderr to ``logs/`` beside its run folder.
+each after the job it waits for, and says how much is left (``Progress``). Concurrent runs
+are child processes (see ``run_jobs`` for why), each logging its stderr to ``logs/``
+beside its run folder.
 """
 
 from __future__ import annotations
@@ -75,6 +76,12 @@ class Job:
     name: str
     kwargs: dict[str, Any]
     after: Job | None = None
+    env_steps: int = 0
+    """The run's budget: it weighs the run in the time-left estimate (0: not counted)."""
+
+    @property
+    def finished(self) -> bool:
+        return (self.folder / self.name / DONE).is_file()
 
     def run(self, child: bool = False, address: str | None = None) -> Path:
         """Train in this process, or in a child process: on the Ray cluster at
@@ -160,10 +167,55 @@ def child_main(spec_json: str) -> int:
     return 0
 
 
+class Progress:
+    """The lines ``run_jobs`` prints: runs already finished (skipped), each start (its
+    place in the plan, stable across re-runs) and each end, with the time left at this
+    session's pace: env steps still to run / env steps per second per run (runs finished
+    in this session from scratch; resumed ones had done part of their budget before)
+    / runs at a time. Runs still going count in full, so it errs long by up to a run."""
+
+    def __init__(self, jobs: list[Job], workers: int, console, clock=time.monotonic) -> None:
+        self.plan, self.workers, self.console, self.clock = jobs, workers, console, clock
+        self.done = {job for job in jobs if job.finished}
+        self.steps_left = sum(job.env_steps for job in jobs if job not in self.done)
+        self.paced_steps, self.paced_seconds = 0, 0.0
+        self.began: dict[Job, tuple[float, bool]] = {}  # start time, resumed
+        if self.done:
+            console.print(f"{len(self.done)} of {len(jobs)} runs already finished "
+                          "(skipped)")
+
+    def start(self, job: Job) -> None:
+        resumed = job.folder is not None and (job.folder / job.name / RUN_FILE).is_file()
+        self.began[job] = (self.clock(), resumed)
+        self.console.print(f"[bold]run {self.plan.index(job) + 1}/{len(self.plan)}[/]: "
+                           f"{job.label}" + (" (resuming)" if resumed else ""))
+
+    def end(self, job: Job) -> None:
+        began, resumed = self.began.pop(job)
+        seconds = self.clock() - began
+        self.done.add(job)
+        self.steps_left -= job.env_steps
+        if not resumed and job.env_steps:
+            self.paced_steps += job.env_steps
+            self.paced_seconds += seconds
+        left = ""
+        if self.paced_steps and self.steps_left > 0:
+            rate = self.paced_steps / self.paced_seconds * self.workers
+            left = f"; about {_duration(self.steps_left / rate)} left at this session's pace"
+        self.console.print(f"finished {job.name} in {_duration(seconds)} "
+                           f"({len(self.done)}/{len(self.plan)} runs done{left})")
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 90 * 60 else f"{seconds / 3600:.1f} h"
+
+
 def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None) -> None:
     """Run ``jobs`` in list order, ``workers`` at a time, each as soon as its
-    prerequisite has finished. After a failure no new job starts; the running ones
-    finish and the first error is raised.
+    prerequisite has finished; finished ones (a ``DONE`` file) are skipped. After a
+    failure no new job starts; the running ones finish and the first error is raised.
 
     One worker runs the jobs in this process. More run each job in a child process,
     because two Tune runs must not share a driver process (Tune's trainable registry is
@@ -174,15 +226,15 @@ def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None)
     Ctrl+C is passed on to the children, which stop at once (Tune keeps their state):
     running the protocol again resumes them.
     """
-    def start(job: Job, count: int) -> None:
-        console.print(f"[bold]run {count}/{len(jobs)}[/]: {job.label}")
-
+    progress = Progress(jobs, workers, console)
+    waiting = [job for job in jobs if job not in progress.done]
     if workers == 1:  # in this thread, so Tune's own Ctrl+C handling applies
-        for count, job in enumerate(jobs, 1):
-            start(job, count)
+        for job in waiting:
+            progress.start(job)
             job.run(address=address)
+            progress.end(job)
         return
-    waiting, running, finished = list(jobs), {}, set()
+    running, finished = {}, set(progress.done)
     failure: BaseException | None = None
     last_launch = -math.inf
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="protocol") as pool:
@@ -191,7 +243,7 @@ def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None)
                 ready = [j for j in waiting if j.after is None or j.after in finished]
                 for job in ready[:workers - len(running)] if failure is None else []:
                     waiting.remove(job)
-                    start(job, len(jobs) - len(waiting))
+                    progress.start(job)
                     if address is not None:
                         time.sleep(max(0.0, last_launch + LAUNCH_GAP_S - time.monotonic()))
                         last_launch = time.monotonic()
@@ -203,6 +255,7 @@ def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None)
                     job, error = running.pop(future), future.exception()
                     if error is None:
                         finished.add(job)
+                        progress.end(job)
                     else:
                         failure = failure or error
                         console.print(f"[red]{job.name} failed[/]: {error}")

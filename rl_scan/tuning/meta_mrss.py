@@ -105,7 +105,7 @@ def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
                           "env steps)", root / R.PRETRAIN_DIR, f"{method}_s{seed}",
                           dict(algo=algo, env_config={**env_config, "scenario": scenario},
                                preset_name=protocol.train_preset, seed=seed,
-                               preset_overrides=overrides))
+                               preset_overrides=overrides), env_steps=protocol.pretrain_steps)
                 jobs.append(pre)
             for test in tests:
                 jobs.append(Job(
@@ -117,7 +117,7 @@ def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
                          preset_overrides={**common, "total_env_steps": protocol.adapt_steps,
                                            "evaluation_interval": protocol.eval_interval,
                                            "evaluation_episodes": protocol.eval_episodes}),
-                    after=pre))
+                    after=pre, env_steps=protocol.adapt_steps))
     return jobs
 
 
