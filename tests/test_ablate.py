@@ -180,3 +180,22 @@ def test_the_finished_count_includes_trials_a_resume_restored_as_done(capsys):
     progress = RunProgress(1000, study="team", trials=3)
     progress.on_trial_complete(0, trials, trials[2])
     assert capsys.readouterr().out.startswith("finished 2/3: condition=4,0, seed=0")
+
+
+def test_the_time_left_is_the_env_steps_left_at_the_trials_pace(capsys):
+    """By hand: 4 trials of 1,000 env steps, 2 at a time. One finished (1,000 steps in
+    100 s) and one half way (500 in 50 s): 1,500 steps in 150 s, 10 per s per trial;
+    2,500 left / 10 / 2 = 125 s (2 min)."""
+    from ray.tune.experiment import Trial
+
+    trials = [Trial("t", config={"condition": c, "seed": 0}, stub=True)
+              for c in ("2,2", "0,4")]
+    for trial, (steps, seconds) in zip(trials, [(1000, 100.0), (500, 50.0)]):
+        trial.update_last_result({R.ENV_STEPS: steps, "time_total_s": seconds})
+    progress = RunProgress(1000, study="team", trials=4, concurrent=2)
+    progress.on_trial_complete(0, trials, trials[0])
+    assert capsys.readouterr().out == ("finished 1/4: condition=2,2, seed=0 eval coverage "
+                                       "nan; about 2 min left\n")
+    del progress.concurrent  # a callback pickled by a study from before this estimate
+    progress.on_trial_complete(0, trials, trials[0])
+    assert capsys.readouterr().out.endswith("; about 4 min left\n")

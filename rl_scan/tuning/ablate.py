@@ -172,7 +172,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
         searcher = resumable_optuna_search(space=space, metric=R.EVAL_SCORE, mode="max",
                                 sampler=sampler, study_name=name, storage=storage)
         progress = RunProgress(preset.total_env_steps, study_dir=folder, spec=base,
-                               study=study.name, trials=num_samples)
+                               study=study.name, trials=num_samples, concurrent=concurrent)
         tuner = tune.Tuner(
             trainable,
             tune_config=tune.TuneConfig(search_alg=searcher, num_samples=num_samples,

@@ -275,9 +275,10 @@ class RunProgress(Callback):
 
     def __init__(self, total_steps: int, run_dir: Path | None = None,
                  study_dir: Path | None = None, spec: RunSpec | None = None,
-                 study: str | None = None, trials: int = 1) -> None:
+                 study: str | None = None, trials: int = 1, concurrent: int = 1) -> None:
         self.total, self.run_dir, self.study_dir = total_steps, run_dir, study_dir
         self.spec, self.study, self.trials = spec, study, trials
+        self.concurrent = concurrent
 
     def _folder(self, trial) -> Path:
         return self.run_dir or R.trial_run_dir(self.study_dir, trial.trial_id)
@@ -312,8 +313,28 @@ class RunProgress(Callback):
     def on_trial_complete(self, iteration, trials, trial, **info) -> None:
         if self.study is not None:  # trials: all of Tune's, those a resume restored too
             done = 1 + sum(t.status == "TERMINATED" for t in trials if t is not trial)
+            left = self._time_left(trials)
             print(f"finished {done}/{self.trials}: {_label(trial.config)} eval "
-                  f"coverage {trial.last_result.get(R.EVAL_SCORE, math.nan):.3f}", flush=True)
+                  f"coverage {trial.last_result.get(R.EVAL_SCORE, math.nan):.3f}"
+                  + (f"; about {format_duration(left)} left" if left else ""), flush=True)
+
+    def _time_left(self, trials) -> float:
+        """Seconds until the study ends: env steps still to run / the trials' env steps
+        per second so far (Tune's per-trial totals, kept across resumes) / trials at a
+        time (a study restored from before this estimate has no count: 1)."""
+        steps = sum(t.last_result.get(R.ENV_STEPS, 0) for t in trials)
+        seconds = sum(t.last_result.get("time_total_s", 0.0) for t in trials)
+        left = self.trials * self.total - steps
+        if left <= 0 or steps <= 0 or seconds <= 0:
+            return 0.0
+        return left / (steps / seconds) / getattr(self, "concurrent", 1)
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``35 min`` or ``2.5 h``: how progress lines say a time."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 90 * 60 else f"{seconds / 3600:.1f} h"
 
 
 def _label(params: dict[str, Any]) -> str:

@@ -26,6 +26,7 @@ from typing import Any
 
 from rl_scan.config import RunInterrupted
 from rl_scan.results import DONE, LOG_DIR, RUN_FILE
+from rl_scan.tuning.driver import format_duration
 from rl_scan.tuning.launch import train
 
 
@@ -201,15 +202,9 @@ class Progress:
         left = ""
         if self.paced_steps and self.steps_left > 0:
             rate = self.paced_steps / self.paced_seconds * self.workers
-            left = f"; about {_duration(self.steps_left / rate)} left at this session's pace"
-        self.console.print(f"finished {job.name} in {_duration(seconds)} "
+            left = f"; about {format_duration(self.steps_left / rate)} left at this session's pace"
+        self.console.print(f"finished {job.name} in {format_duration(seconds)} "
                            f"({len(self.done)}/{len(self.plan)} runs done{left})")
-
-
-def _duration(seconds: float) -> str:
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    return f"{seconds / 60:.0f} min" if seconds < 90 * 60 else f"{seconds / 3600:.1f} h"
 
 
 def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None) -> None:
