@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -213,6 +214,42 @@ def test_sigkill_then_resume_continues_from_a_checkpoint(tmp_path):
     logged = [e["training_iteration"] for e in evals]
     assert logged == sorted(set(logged)) and logged[-1] == 10
     assert restored_from + 1 in logged  # the first iteration after the restore
+
+
+@pytest.mark.slow
+def test_a_resume_survives_tune_having_deleted_the_checkpoint_its_state_names(tmp_path):
+    """Tune can delete the checkpoint its saved state names as the latest (a new one
+    registered, the old one dropped by score, the driver killed before the state was
+    saved; seen in the meta-MRSS protocol). Simulated: after a SIGKILL that checkpoint is
+    deleted; the resume goes on from the newest one on disk instead of failing."""
+    from rl_scan.tuning.driver import recorded_checkpoints
+
+    cmd = [sys.executable, "-m", "rl_scan.cli", "train", "--algo", "ppo", "--preset", "smoke",
+           "--total-env-steps", "4000", "--results", str(tmp_path), "--name", "run"]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    tune_dir = tmp_path / "run" / R.TUNE_DIR
+
+    def named_in_state():  # Tune saves its state now and then; it may be half written
+        try:
+            return recorded_checkpoints(tune_dir) if tune_dir.is_dir() else []
+        except (OSError, ValueError, KeyError):
+            return []
+
+    deadline = time.time() + 120
+    while time.time() < deadline and not any(p.exists() for p in named_in_state()):
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    [named] = recorded_checkpoints(tune_dir)
+    assert named.exists() and int(named.name.split("_")[1]) < 9, "kill should land mid-run"
+    shutil.rmtree(named)
+    out = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert f"names {named.name} of {R.TRAIN_TRIAL}, deleted" in " ".join(out.stdout.split())
+    merged = R.progress_rows(tmp_path / "run")
+    assert [int(r[R.ITERATION]) for r in merged] == list(range(1, 11))
+    assert [int(float(r[R.ENV_STEPS])) for r in merged] == [400 * k for k in range(1, 11)]
 
 
 def test_an_env_error_after_a_checkpoint_is_survived_by_restoring_it(ray_session, tmp_path):

@@ -26,6 +26,7 @@ from rl_scan.tuning.driver import (
     git_commit,
     make_run_spec,
     required_cpus,
+    restore_missing_checkpoints,
     train_run,
     trial_resources,
 )
@@ -165,6 +166,8 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
                   f"({preset.total_env_steps:,} env steps each), {concurrent} at a time "
                   f"-> {folder}")
     if resume and (folder / R.TUNE_DIR).is_dir():
+        for line in restore_missing_checkpoints(folder / R.TUNE_DIR):
+            console.print(line)
         tuner = tune.Tuner.restore(str(folder / R.TUNE_DIR), trainable=trainable,
                                    resume_errored=True, resume_unfinished=True)
     else:

@@ -23,6 +23,7 @@ from rl_scan.tuning.driver import (  # noqa: E402
     checkpoint_config,
     make_run_spec,
     required_cpus,
+    restore_missing_checkpoints,
     train_run,
     trial_resources,
 )
@@ -169,6 +170,8 @@ def train_spec(spec: RunSpec, *, results_dir: str | Path = "results", name: str 
                                     trial_resources(preset))
     if resume:
         console.print(f"resuming {run_dir}")
+        for line in restore_missing_checkpoints(run_dir / R.TUNE_DIR):
+            console.print(line)
         # The run config, the progress callback included, is restored from tuner.pkl.
         tuner = tune.Tuner.restore(str(run_dir / R.TUNE_DIR), trainable=trainable,
                                    resume_errored=True, resume_unfinished=True)
