@@ -222,7 +222,7 @@ def test_a_resume_survives_tune_having_deleted_the_checkpoint_its_state_names(tm
     registered, the old one dropped by score, the driver killed before the state was
     saved; seen in the meta-MRSS protocol). Simulated: after a SIGKILL that checkpoint is
     deleted; the resume goes on from the newest one on disk instead of failing."""
-    from rl_scan.tuning.driver import recorded_checkpoints
+    from rl_scan.tuning.checkpoints import recorded_checkpoints
 
     cmd = [sys.executable, "-m", "rl_scan.cli", "train", "--algo", "ppo", "--preset", "smoke",
            "--total-env-steps", "4000", "--results", str(tmp_path), "--name", "run"]

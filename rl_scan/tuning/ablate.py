@@ -20,13 +20,12 @@ from typing import Any
 from rl_scan import results as R
 from rl_scan.config import check_range, fail
 from rl_scan.studies import Study, get_study
+from rl_scan.tuning.checkpoints import checkpoint_config, restore_missing_checkpoints
 from rl_scan.tuning.driver import (
     RunProgress,
-    checkpoint_config,
     git_commit,
     make_run_spec,
     required_cpus,
-    restore_missing_checkpoints,
     train_run,
     trial_resources,
 )

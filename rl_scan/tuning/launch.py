@@ -17,13 +17,12 @@ os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # Tune's boxed tables; we prin
 
 from rl_scan import results as R  # noqa: E402
 from rl_scan.config import ConfigError, RunInterrupted, fail  # noqa: E402
+from rl_scan.tuning.checkpoints import checkpoint_config, restore_missing_checkpoints
 from rl_scan.tuning.driver import (  # noqa: E402
     RunProgress,
     RunSpec,
-    checkpoint_config,
     make_run_spec,
     required_cpus,
-    restore_missing_checkpoints,
     train_run,
     trial_resources,
 )
