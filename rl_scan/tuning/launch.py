@@ -17,7 +17,7 @@ os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # Tune's boxed tables; we prin
 
 from rl_scan import results as R  # noqa: E402
 from rl_scan.config import ConfigError, RunInterrupted, fail  # noqa: E402
-from rl_scan.tuning.checkpoints import checkpoint_config, restore_missing_checkpoints
+from rl_scan.tuning.checkpoints import checkpoint_config, restore_missing_checkpoints  # noqa: E402
 from rl_scan.tuning.driver import (  # noqa: E402
     RunProgress,
     RunSpec,
