@@ -229,13 +229,13 @@ def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None)
             job.run(address=address)
             progress.end(job)
         return
-    running, finished = {}, set(progress.done)
+    running = {}
     failure: BaseException | None = None
     last_launch = -math.inf
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="protocol") as pool:
         try:
             while running or (waiting and failure is None):
-                ready = [j for j in waiting if j.after is None or j.after in finished]
+                ready = [j for j in waiting if j.after is None or j.after in progress.done]
                 for job in ready[:workers - len(running)] if failure is None else []:
                     waiting.remove(job)
                     progress.start(job)
@@ -249,8 +249,7 @@ def run_jobs(jobs: list[Job], workers: int, console, address: str | None = None)
                 for future in done:
                     job, error = running.pop(future), future.exception()
                     if error is None:
-                        finished.add(job)
-                        progress.end(job)
+                        progress.end(job)  # marks it done: its dependents may start
                     else:
                         failure = failure or error
                         console.print(f"[red]{job.name} failed[/]: {error}")
