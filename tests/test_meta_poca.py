@@ -264,8 +264,9 @@ def test_reptile_moves_theta_by_the_mean_task_delta():
 def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer, weight):
     """outer='multitask' is one ordinary update at theta on every batch (DR on the same
     data); 'maml_dr' then adds each task's query update at theta + delta at lr x
-    maml_weight: a standalone learner with the same state making those updates ends at
-    the same weights."""
+    maml_weight, for the actors only: a standalone learner with the same state making
+    those updates ends at the same weights, its critic (and the critic's Adam) where the
+    update at theta left it."""
     config, runner, learner = _setup(outer=outer, maml_weight=weight)
     tasks = _tasks(learner, runner)
     plain = config.build_learner(env=None, spaces=runner.get_spaces())
@@ -279,18 +280,27 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer,
     _seeded()
     plain.update(episodes=mixed, **plain.update_kwargs({}))
     after_mixed = {k: t.detach().clone() for k, t in plain.float_state().items()}
+    critic_adam = copy.deepcopy(plain._named_optimizers[f"{CRITIC_ID}_default_optimizer"]
+                                .state_dict())
     if outer == "maml_dr" and weight > 0:
         for task, query in zip(tasks, queries):
             for optimizer in plain._named_optimizers.values():
                 optimizer.param_groups[0]["lr"] = config.lr * weight  # RLlib resets it after
-            with plain.shifted(task.delta):
+            with plain.shifted(task.delta), plain.critic_frozen():
                 plain.update(episodes=query, **plain.update_kwargs({}))
     reached = plain.float_state()
     for key, t in learner.float_state().items():
         torch.testing.assert_close(t, reached[key], rtol=1e-5, atol=1e-6)
+        if key[0] == CRITIC_ID:  # the critic learns at theta only, where tasks are mixed
+            # (to the rounding of shifting by +delta and back; an Adam step is ~lr = 1e-3)
+            torch.testing.assert_close(t, after_mixed[key], rtol=1e-6, atol=1e-6)
     moved = any(not torch.equal(t, after_mixed[k]) for k, t in reached.items())
     assert moved == (outer == "maml_dr" and weight > 0)  # the MAML term goes on past it
     assert {o.param_groups[0]["lr"] for o in learner._named_optimizers.values()} == {config.lr}
+    adam = learner._named_optimizers[f"{CRITIC_ID}_default_optimizer"].state_dict()["state"]
+    for index, state in critic_adam["state"].items():
+        for name, value in state.items():
+            torch.testing.assert_close(adam[index][name], value, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("meta, message", [
@@ -307,6 +317,7 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer,
     (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),
     (dict(maml_weight=-0.5), r"meta.maml_weight=-0.5 is invalid"),
     (dict(inner_lr=0), r"meta.inner_lr=0 is invalid"),
+    (dict(task_envs=-1), r"meta.task_envs=-1 is invalid"),
     (dict(num_env_runners=1), r"num_env_runners=1"),
 ])
 def test_bad_meta_settings_fail_before_building(meta, message):
@@ -355,15 +366,16 @@ def test_a_meta_iteration_spends_its_settings_steps_and_the_budget_is_a_whole_nu
 
     budget = {"total_env_steps": 100_000}
     meta = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget)
-    assert meta.settings.env_steps_per_iteration() == 1 * (2_000 + 2_000)  # DR's batch
+    assert meta.settings.env_steps_per_iteration() == 4 * (500 + 500)  # DR's batch
     assert (meta.settings.outer, meta.settings.inner_adam) == ("maml_dr", "meta")
+    assert meta.algorithm_config().num_envs_per_env_runner == 1  # task_envs: 4 scenes each
     assert meta.iterations == 25
     assert make_run_spec("poca", {}, "quick", preset_overrides=budget).iterations == 25
     assert make_run_spec("meta-poca", {}, "paper").iterations == 40  # 8M / 200k
     reptile = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget,
-                            settings_overrides={"outer": "reptile", "query_steps": 3_000})
+                            settings_overrides={"outer": "reptile", "query_steps": 750})
     assert reptile.settings.outer == "reptile" and reptile.iterations == 20  # 5k each
-    assert reptile.metadata()["algo_settings"]["query_steps"] == 3_000
+    assert reptile.metadata()["algo_settings"]["query_steps"] == 750
 
 
 def test_meta_poca_evaluates_and_checkpoints_at_the_presets_env_step_spacing():
@@ -373,7 +385,7 @@ def test_meta_poca_evaluates_and_checkpoints_at_the_presets_env_step_spacing():
     assert (quick.evaluation_interval, quick.checkpoint_frequency) == (5, 5)
     meta = make_run_spec("meta-poca", {}, "quick").preset  # 4,000 per meta-iteration
     assert (meta.evaluation_interval, meta.checkpoint_frequency) == (5, 5)
-    five = make_run_spec("meta-poca", {}, "quick", settings_overrides={"tasks": 5}).preset
-    assert (five.evaluation_interval, five.checkpoint_frequency) == (1, 1)  # 20,000 each
+    many = make_run_spec("meta-poca", {}, "quick", settings_overrides={"tasks": 20}).preset
+    assert (many.evaluation_interval, many.checkpoint_frequency) == (1, 1)  # 20,000 each
     paper = make_run_spec("meta-poca", {}, "paper").preset  # 102,400 vs 200,000: at least 1
     assert paper.evaluation_interval == 1

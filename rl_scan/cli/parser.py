@@ -180,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "steps with the meta policy, one ordinary POCA update on them (the "
                     "adaptation), query_steps env steps with the adapted policy; then the "
                     "outer update learns from every step (support at the meta weights, "
-                    "query at the adapted ones). Same run folder, --resume and "
+                    "query at the adapted ones; the critic learns at the meta weights "
+                    "only, where the tasks are mixed). Same run folder, --resume and "
                     "checkpoints as `train`; --scenario is what evaluation uses.")
     _add_run_args(mt, "meta-poca_SCENARIO_PRESET_sSEED")
     mt.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
@@ -191,7 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "(maml; maml_dr: maml whose update at theta also learns from "
                          "the query batches; reptile; or multitask: the control without "
                          "the MAML shift), reptile_lr, maml_weight (the MAML term's "
-                         "lr as a fraction of POCA's) "
+                         "lr as a fraction of POCA's), task_envs (envs each task samples "
+                         "on; 0: the preset's) "
                          "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
     mt.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                     help="warm start from this checkpoint's (or run folder's) weights, "

@@ -12,6 +12,8 @@
                 constant: what ``torch.func.functional_call`` at theta + delta gives),
                 with no second copy of the modules.
 ``lr_scaled``   every optimizer's lr times a factor for a block (the MAML term's weight).
+``critic_frozen`` updates inside a block leave the critic as it is (the per-task updates
+                at theta + delta: the critic learns where the tasks are mixed).
 ``reptile_step`` theta += epsilon * mean over tasks of delta.
 
 Return statistics (the critic's PopArt moments) belong to the meta-learner: the outer
@@ -99,6 +101,16 @@ class MetaPOCALearner(POCATorchLearner):
             with torch.no_grad():
                 for key, p in params.items():
                     p.sub_(delta[key])
+
+    @contextmanager
+    def critic_frozen(self) -> Iterator[None]:
+        """Updates inside the block train the actors only: the critic's loss is left out,
+        so it gets no gradient and its Adam takes no step (its moments stay as well)."""
+        self.critic_learns = False
+        try:
+            yield
+        finally:
+            self.critic_learns = True
 
     @contextmanager
     def lr_scaled(self, factor: float) -> Iterator[None]:

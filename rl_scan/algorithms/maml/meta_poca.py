@@ -76,19 +76,21 @@ class MetaPOCAConfig(POCAConfig):
         self.outer_rule = "maml"
         self.reptile_lr = 1.0
         self.maml_weight = 1.0
+        self.task_envs = 0
         self.task_pool = N_TRAIN
 
     def meta(self, *, tasks: int = NotProvided, support_steps: int = NotProvided,
              query_steps: int = NotProvided, inner_updates: int = NotProvided,
              inner_lr: float = NotProvided, inner_adam: str = NotProvided,
              outer: str = NotProvided, reptile_lr: float = NotProvided,
-             maml_weight: float = NotProvided, task_pool: int = NotProvided) -> MetaPOCAConfig:
+             maml_weight: float = NotProvided, task_envs: int = NotProvided,
+             task_pool: int = NotProvided) -> MetaPOCAConfig:
         """Meta settings (``MetaSettings`` documents each); ``task_pool``: tasks are drawn
         from ``train:0`` .. ``train:{task_pool - 1}``."""
         given = dict(tasks=tasks, support_steps=support_steps, query_steps=query_steps,
                      inner_updates=inner_updates, inner_lr=inner_lr, inner_adam=inner_adam,
                      outer=outer, reptile_lr=reptile_lr, maml_weight=maml_weight,
-                     task_pool=task_pool)
+                     task_envs=task_envs, task_pool=task_pool)
         for name, value in given.items():
             if value is not NotProvided:
                 setattr(self, CONFIG_ATTRS.get(name, name), value)
@@ -108,6 +110,9 @@ class MetaPOCAConfig(POCAConfig):
         self.settings().validate("meta.")
         check_range("meta.task_pool", self.task_pool, 1, N_TRAIN)
         check_range("meta.tasks", self.meta_tasks, 1, self.task_pool)  # distinct tasks
+        if self.task_envs and self.task_envs != self.num_envs_per_env_runner:
+            fail("meta.task_envs", self.task_envs, "0 or num_envs_per_env_runner="
+                 f"{self.num_envs_per_env_runner} (meta_poca_config sets it from task_envs)")
         check_steps_fit(self.support_steps, self.query_steps, self.num_envs_per_env_runner,
                         "meta.")
         max_steps = int(self.env_config.get("max_steps", 0))
@@ -217,8 +222,9 @@ class MetaPOCA(POCA):
         results = [learner.update(episodes=at_theta, **kwargs)]
         if rule == "multitask" or self.config.maml_weight == 0:
             return results
-        for task in tasks:
-            with learner.shifted(task.delta), learner.lr_scaled(self.config.maml_weight):
+        for task in tasks:  # the critic learns at theta only, where the tasks are mixed
+            with (learner.shifted(task.delta), learner.lr_scaled(self.config.maml_weight),
+                  learner.critic_frozen()):
                 results.append(learner.update(episodes=task.query, **kwargs))
         return results
 
@@ -251,8 +257,11 @@ def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size
     serve the inner and outer updates) plus the meta ones, the keywords of
     ``MetaPOCAConfig.meta`` (defaults: the paper's, in ``MetaPOCAConfig``).
     ``train_batch_size`` is accepted for a common launch signature; a meta-iteration
-    samples ``tasks * (support_steps + query_steps)`` env steps instead."""
+    samples ``tasks * (support_steps + query_steps)`` env steps instead; ``task_envs``
+    (if not 0) replaces ``num_envs_per_env_runner``."""
     meta = {k: kwargs.pop(k) for k in list(kwargs) if k in META_KEYWORDS}
+    if meta.get("task_envs", 0) > 0:
+        kwargs["num_envs_per_env_runner"] = meta["task_envs"]
     config = poca_config(env_config, base=MetaPOCAConfig(), train_batch_size=train_batch_size,
                          minibatch_size=minibatch_size, **kwargs)
     return config.meta(**meta)

@@ -47,6 +47,10 @@ class MetaSettings:
     """The MAML term's step size as a fraction of POCA's lr (``maml``, ``maml_dr``): the
     per-task query updates at theta + delta run with lr x maml_weight (with Adam the
     length of their steps); 0 leaves only the update at theta."""
+    task_envs: int = 0
+    """Envs (worlds) the runner samples each task's batches on, in place of the preset's
+    ``num_envs_per_env_runner`` (0: the preset's). One env lets a 4k meta-iteration hold
+    4 tasks of one support and one query episode each."""
 
     def validate(self, prefix: str = "") -> None:
         check_range(prefix + "tasks", self.tasks, 1, N_TRAIN)  # distinct train scenarios
@@ -60,11 +64,15 @@ class MetaSettings:
             fail(prefix + "outer", self.outer, f"one of {list(OUTER_RULES)}")
         check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
         check_range(prefix + "maml_weight", self.maml_weight, 0.0, 10.0)
+        check_range(prefix + "task_envs", self.task_envs, 0, 256)
 
     def fit_preset(self, preset, prefix: str = ""):
         """The training preset as a MetaPOCA run uses it: support and query steps that fill
         the runner's envs, a budget of whole meta-iterations (no method trains past it),
-        and evaluations and checkpoints at the preset's env-step spacing."""
+        and evaluations and checkpoints at the preset's env-step spacing (on ``task_envs``
+        envs per runner if set)."""
+        if self.task_envs:
+            preset = dataclasses.replace(preset, num_envs_per_env_runner=self.task_envs)
         check_steps_fit(self.support_steps, self.query_steps,
                         preset.num_envs_per_env_runner, prefix)
         per_iteration = self.env_steps_per_iteration()
@@ -93,9 +101,10 @@ def check_steps_fit(support_steps: int, query_steps: int, envs: int, prefix: str
 
 # Smaller task batches for the short presets (the defaults are the paper's: 200k env steps
 # per meta-iteration). Each divides its presets' budgets (smoke 800, quick 100k-1M).
-# quick: one task of one episode per env each for support and query = 4k env steps, DR's
-# batch, with the DR update on all of it (maml_dr) and inner steps that continue the meta
-# Adam: the variant that meta-trains as fast as DR per env step (docs/DESIGN.md, #16).
+# quick: 4 tasks of one episode each for support and query on one env = 4k env steps,
+# DR's batch, with the DR update on all of it (maml_dr) and inner steps that continue the
+# meta Adam. Several scenes per update: a critic that learns from one scene per update,
+# another each time, does not learn (docs/DESIGN.md, #16).
 PRESET_SETTINGS = {"smoke": dict(tasks=2, support_steps=100, query_steps=100),
-                   "quick": dict(tasks=1, support_steps=2_000, query_steps=2_000,
+                   "quick": dict(tasks=4, support_steps=500, query_steps=500, task_envs=1,
                                  outer="maml_dr", inner_adam="meta")}

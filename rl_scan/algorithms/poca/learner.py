@@ -58,6 +58,10 @@ def value_clip(config, clip_param: float) -> float:
 class POCATorchLearner(FusedAdamMixin, TorchLearner):
     """Learner for POCAConfig (see the package doc for the algorithm)."""
 
+    critic_learns = True
+    """False: updates leave the critic as it is (no loss, no gradient, no Adam step);
+    MetaPOCA's per-task updates at theta + delta."""
+
     @override(TorchLearner)
     def build(self) -> None:
         super().build()
@@ -85,6 +89,8 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
     def compute_losses(self, *, fwd_out: dict[str, Any], batch: dict[str, Any]
                        ) -> dict[str, Any]:
         losses = super().compute_losses(fwd_out=fwd_out, batch=batch)
+        if not self.critic_learns:
+            return losses
         critic = self.module[CRITIC_ID]
         out = critic.loss(critic.minibatches[TRAIN_TABLE].next(),
                           value_clip(self.config, self.current_clip()))
