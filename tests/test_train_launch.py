@@ -247,9 +247,14 @@ def test_a_resume_survives_tune_having_deleted_the_checkpoint_its_state_names(tm
     out = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert f"names {named.name} of {R.TRAIN_TRIAL}, deleted" in " ".join(out.stdout.split())
+    # Training goes on from the checkpoint's counters to the budget. The result reported
+    # with the last checkpoint before the SIGKILL may never have reached either of Tune's
+    # logs (seen in CI): at most that one iteration is missing.
     merged = R.progress_rows(tmp_path / "run")
-    assert [int(r[R.ITERATION]) for r in merged] == list(range(1, 11))
-    assert [int(float(r[R.ENV_STEPS])) for r in merged] == [400 * k for k in range(1, 11)]
+    iterations = [int(r[R.ITERATION]) for r in merged]
+    assert iterations == sorted(set(iterations)) and iterations[-1] == 10
+    assert len(set(range(1, 11)) - set(iterations)) <= 1, iterations
+    assert [int(float(r[R.ENV_STEPS])) for r in merged] == [400 * k for k in iterations]
 
 
 def test_an_env_error_after_a_checkpoint_is_survived_by_restoring_it(ray_session, tmp_path):
