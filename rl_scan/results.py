@@ -77,6 +77,7 @@ EV_BASELINE = "explained_variance_baseline"  # POCA, under each actor module: it
 META_BEFORE = "meta/coverage_before_adaptation"  # MetaPOCA: support episodes' coverage
 META_AFTER = "meta/coverage_after_adaptation"  # MetaPOCA: query episodes' coverage
 META_DELTA_NORM = "meta/delta_norm"  # MetaPOCA: mean over tasks of ||theta'_i - theta||
+META_TERM_RESULTS = "meta/maml_term"  # MetaPOCA: learner results at theta + delta_i
 META_FILE = "meta_diagnostics.json"  # in a MetaPOCA run folder: one entry per meta-iteration
 
 

@@ -1,5 +1,6 @@
-"""The meta-MRSS protocol: input checks, curve metrics and the summary by hand, and one
-end-to-end smoke protocol through Tune (meta-train, adapt, standard POCA)."""
+"""The meta-MRSS protocol: input checks, MetaPOCA's settings per preset, curve metrics and
+the summary by hand, and one end-to-end smoke protocol through Tune (meta-train, adapt,
+standard POCA)."""
 
 from __future__ import annotations
 
@@ -254,3 +255,33 @@ def test_ctrl_c_stops_parallel_runs_unfinished_and_a_rerun_completes_them(tmp_pa
         assert iters == list(range(1, 16))  # resumed, not restarted: each iteration once
         # runs started side by side keep apart (a shared Ray session mixed their trials)
         assert [p.name for p in (run / R.TUNE_DIR).glob("trial*")] == [R.TRAIN_TRIAL]
+
+
+def test_a_meta_iteration_spends_its_settings_steps_and_the_budget_is_a_whole_number_of_them():
+    from rl_scan.tuning.driver import make_run_spec
+
+    budget = {"total_env_steps": 100_000}
+    meta = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget)
+    assert meta.settings.env_steps_per_iteration() == 4 * (500 + 500)  # DR's batch
+    assert (meta.settings.outer, meta.settings.inner_adam) == ("maml_dr", "meta")
+    assert meta.algorithm_config().num_envs_per_env_runner == 1  # task_envs: 4 scenes each
+    assert meta.iterations == 25
+    assert make_run_spec("poca", {}, "quick", preset_overrides=budget).iterations == 25
+    assert make_run_spec("meta-poca", {}, "paper").iterations == 40  # 8M / 200k
+    reptile = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget,
+                            settings_overrides={"outer": "reptile", "query_steps": 750})
+    assert reptile.settings.outer == "reptile" and reptile.iterations == 20  # 5k each
+    assert reptile.metadata()["algo_settings"]["query_steps"] == 750
+
+
+def test_meta_poca_evaluates_and_checkpoints_at_the_presets_env_step_spacing():
+    from rl_scan.tuning.driver import make_run_spec
+
+    quick = make_run_spec("poca", {}, "quick").preset  # every 5 x 4,000 env steps
+    assert (quick.evaluation_interval, quick.checkpoint_frequency) == (5, 5)
+    meta = make_run_spec("meta-poca", {}, "quick").preset  # 4,000 per meta-iteration
+    assert (meta.evaluation_interval, meta.checkpoint_frequency) == (5, 5)
+    many = make_run_spec("meta-poca", {}, "quick", settings_overrides={"tasks": 20}).preset
+    assert (many.evaluation_interval, many.checkpoint_frequency) == (1, 1)  # 20,000 each
+    paper = make_run_spec("meta-poca", {}, "paper").preset  # 102,400 vs 200,000: at least 1
+    assert paper.evaluation_interval == 1

@@ -14,12 +14,14 @@ import numpy as np
 import pytest
 import torch
 from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
+from ray.rllib.utils.metrics.metrics_logger import MetricsLogger
 
 from rl_scan.algorithms.maml import meta_poca_config
 from rl_scan.algorithms.maml.meta_poca import set_task
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.algorithms.poca.poca import poca_config
 from rl_scan.config import ConfigError
+from rl_scan.results import EV_VALUE, META_TERM_RESULTS
 
 ENV = {"max_steps": 12}
 TRAINING = dict(num_envs_per_env_runner=2, train_batch_size=64, minibatch_size=16,
@@ -237,12 +239,26 @@ def test_a_meta_iteration_learns_from_every_step_it_charges(ray_session):
         return episodes
 
     runner.sample = recording
+    learner, evs = algo.learner_group._learner, []  # each update's explained variance of V
+    update = learner.update
+
+    def recording_update(**kwargs):
+        results = update(**kwargs)
+        evs.append(MetricsLogger.peek_results(results)[CRITIC_ID][EV_VALUE])
+        return results
+
+    learner.update = recording_update
     result = algo.train()
     algo.stop()
     charged = result["env_runners"]["num_env_steps_sampled_lifetime"]
     assert charged == sum(sampled) == 2 * (24 + 48)
     assert sampled == [24, 48, 24, 48]
     assert result["meta/delta_norm"] > 0
+    # 2 inner updates, the update at theta, 2 at theta + delta_i: the learners' results are
+    # the update at theta's (as POCA's are), the MAML term's are logged apart
+    assert len(evs) == 5 and len(set(evs)) == 5
+    assert result["learners"][CRITIC_ID][EV_VALUE] == pytest.approx(evs[2])
+    assert result[META_TERM_RESULTS][CRITIC_ID][EV_VALUE] == pytest.approx(np.mean(evs[3:]))
 
 
 def test_reptile_moves_theta_by_the_mean_task_delta():
@@ -359,33 +375,3 @@ def test_a_restored_run_draws_the_tasks_the_uninterrupted_run_draws(ray_session,
     first = restored.meta_tasks_of(0)
     restored.stop()
     assert expected != first  # tasks change from one iteration to the next
-
-
-def test_a_meta_iteration_spends_its_settings_steps_and_the_budget_is_a_whole_number_of_them():
-    from rl_scan.tuning.driver import make_run_spec
-
-    budget = {"total_env_steps": 100_000}
-    meta = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget)
-    assert meta.settings.env_steps_per_iteration() == 4 * (500 + 500)  # DR's batch
-    assert (meta.settings.outer, meta.settings.inner_adam) == ("maml_dr", "meta")
-    assert meta.algorithm_config().num_envs_per_env_runner == 1  # task_envs: 4 scenes each
-    assert meta.iterations == 25
-    assert make_run_spec("poca", {}, "quick", preset_overrides=budget).iterations == 25
-    assert make_run_spec("meta-poca", {}, "paper").iterations == 40  # 8M / 200k
-    reptile = make_run_spec("meta-poca", {}, "quick", preset_overrides=budget,
-                            settings_overrides={"outer": "reptile", "query_steps": 750})
-    assert reptile.settings.outer == "reptile" and reptile.iterations == 20  # 5k each
-    assert reptile.metadata()["algo_settings"]["query_steps"] == 750
-
-
-def test_meta_poca_evaluates_and_checkpoints_at_the_presets_env_step_spacing():
-    from rl_scan.tuning.driver import make_run_spec
-
-    quick = make_run_spec("poca", {}, "quick").preset  # every 5 x 4,000 env steps
-    assert (quick.evaluation_interval, quick.checkpoint_frequency) == (5, 5)
-    meta = make_run_spec("meta-poca", {}, "quick").preset  # 4,000 per meta-iteration
-    assert (meta.evaluation_interval, meta.checkpoint_frequency) == (5, 5)
-    many = make_run_spec("meta-poca", {}, "quick", settings_overrides={"tasks": 20}).preset
-    assert (many.evaluation_interval, many.checkpoint_frequency) == (1, 1)  # 20,000 each
-    paper = make_run_spec("meta-poca", {}, "paper").preset  # 102,400 vs 200,000: at least 1
-    assert paper.evaluation_interval == 1

@@ -56,7 +56,7 @@ from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
 from rl_scan.config import check_range, fail
 from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.scenarios import N_TRAIN
-from rl_scan.results import META_AFTER, META_BEFORE, META_DELTA_NORM
+from rl_scan.results import META_AFTER, META_BEFORE, META_DELTA_NORM, META_TERM_RESULTS
 
 CONFIG_ATTRS = {"tasks": "meta_tasks", "outer": "outer_rule"}
 """MetaSettings fields whose MetaPOCAConfig attribute has another name."""
@@ -201,7 +201,12 @@ class MetaPOCA(POCA):
             [delta_norm(learner, t.delta) for t in tasks])), window=1)
         with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
             results = self._outer_update(learner, tasks)
-        self.metrics.aggregate(results, key=LEARNER_RESULTS)
+        # The update at theta is DR's on the same data, so its results (the critic's
+        # explained variance included) stand where POCA's do; merged with the MAML term's
+        # single-task updates at theta + delta_i, RLlib would log the mean of them all.
+        self.metrics.aggregate(results[:1], key=LEARNER_RESULTS)
+        if results[1:]:
+            self.metrics.aggregate(results[1:], key=META_TERM_RESULTS)
         self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group,
                                            policies=actor_ids, inference_only=True)
 
