@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import os
+import re
 import tempfile
 import types
 import typing
@@ -174,13 +175,29 @@ def check_writable(field: str, path: str | Path, *, folder: bool) -> None:
     os.rmdir(probe)
 
 
+class _Loader(yaml.SafeLoader):
+    """YAML's safe loader, with YAML 1.2's floats: PyYAML follows YAML 1.1, where ``1e-6``
+    (no dot) is the string '1e-6', so ``--meta inner_lr=1e-6`` was refused as not a number."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."))
+
+
+def parse_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that also reads exponent floats without a dot (``1e-6``, ``3E2``)."""
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 (a SafeLoader subclass)
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping; a missing or malformed file raises ConfigError naming it."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"file {str(path)!r} does not exist")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = parse_yaml(path.read_text())
     except yaml.YAMLError as e:
         raise ConfigError(f"file {str(path)!r} is not valid YAML: {e}") from e
     if not isinstance(data, dict):

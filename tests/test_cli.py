@@ -121,6 +121,18 @@ def test_an_env_config_yaml_sets_fields_and_flags_override_it(tmp_path, capsys):
     assert code == 2 and "max_stepz" in err
 
 
+def test_exponent_numbers_without_a_dot_are_numbers_on_the_command_line_and_in_yaml(tmp_path):
+    # PyYAML reads YAML 1.1, where 1e-6 is a string: --meta inner_lr=1e-6 was refused.
+    from rl_scan.cli.env_args import parse_set
+    from rl_scan.config import load_yaml
+
+    assert parse_set(["inner_lr=1e-6", "a.b=3E2", "c=-1.5e+3", "d=1e", "e=e5"]) == {
+        "inner_lr": 1e-6, "a": {"b": 300.0}, "c": -1500.0, "d": "1e", "e": "e5"}
+    path = tmp_path / "env.yaml"
+    path.write_text("quad: {sensor_range: 35e-1}\nscenario: 'test:1'\n")
+    assert load_yaml(path) == {"quad": {"sensor_range": 3.5}, "scenario": "test:1"}
+
+
 @pytest.mark.parametrize("argv, field", [
     (["render", "--scenario", "ablation", "--policy", "greedy", "--out", "/proc/x/a.gif"],
      "out"),

@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-import yaml
-
-from rl_scan.config import ConfigError, deep_merge, load_yaml
+from rl_scan.config import ConfigError, deep_merge, load_yaml, parse_yaml
 from rl_scan.envs.sim.env_config import EnvConfig, make_env_config
 
 TEAM_NAMES = {"hetero": (2, 2), "quads": (0, 4), "wheeled": (4, 0)}
@@ -38,7 +36,7 @@ def parse_set(items: list[str], flag: str = "--set", example: str = "max_steps=3
         parts = key.strip().split(".")
         for part in parts[:-1]:
             node = node.setdefault(part, {})
-        node[parts[-1]] = yaml.safe_load(value)
+        node[parts[-1]] = parse_yaml(value)
     return out
 
 
