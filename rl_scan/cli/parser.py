@@ -192,7 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "(maml; maml_dr: maml whose update at theta also learns from "
                          "the query batches; reptile; or multitask: the control without "
                          "the MAML shift), reptile_lr, maml_weight (the MAML term's "
-                         "lr as a fraction of POCA's), task_envs (envs each task samples "
+                         "lr as a fraction of POCA's), relabel_query (true: the update at "
+                         "theta takes the adapted actors' query episodes as its own), "
+                         "task_envs (envs each task samples "
                          "on; 0: the preset's) "
                          "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
     mt.add_argument("--init-from", default=None, metavar="CHECKPOINT",

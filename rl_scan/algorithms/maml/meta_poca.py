@@ -14,7 +14,8 @@ Then the outer update (``outer``):
   * ``maml_dr``: as ``maml``, but the update at theta learns from every support and query
     batch (tasks mixed: the DR update on all the data) before the per-task query updates
     at theta + delta_i (the MAML term added to DR's objective);
-  (``maml_weight`` scales the lr of the updates at theta + delta_i: the MAML term's weight);
+  (``maml_weight`` scales the lr of the updates at theta + delta_i: the MAML term's weight;
+  ``relabel_query`` makes the update at theta take the query batches as theta's own);
   * ``reptile``: theta += reptile_lr * mean_i(theta''_i - theta), theta''_i being theta'_i
     after one more POCA update on the task's query batch;
   * ``multitask`` (a control): one ordinary POCA update at theta on all support and query
@@ -76,6 +77,7 @@ class MetaPOCAConfig(POCAConfig):
         self.outer_rule = "maml"
         self.reptile_lr = 1.0
         self.maml_weight = 1.0
+        self.relabel_query = False
         self.task_envs = 0
         self.task_pool = N_TRAIN
 
@@ -83,14 +85,15 @@ class MetaPOCAConfig(POCAConfig):
              query_steps: int = NotProvided, inner_updates: int = NotProvided,
              inner_lr: float = NotProvided, inner_adam: str = NotProvided,
              outer: str = NotProvided, reptile_lr: float = NotProvided,
-             maml_weight: float = NotProvided, task_envs: int = NotProvided,
+             maml_weight: float = NotProvided, relabel_query: bool = NotProvided,
+             task_envs: int = NotProvided,
              task_pool: int = NotProvided) -> MetaPOCAConfig:
         """Meta settings (``MetaSettings`` documents each); ``task_pool``: tasks are drawn
         from ``train:0`` .. ``train:{task_pool - 1}``."""
         given = dict(tasks=tasks, support_steps=support_steps, query_steps=query_steps,
                      inner_updates=inner_updates, inner_lr=inner_lr, inner_adam=inner_adam,
                      outer=outer, reptile_lr=reptile_lr, maml_weight=maml_weight,
-                     task_envs=task_envs, task_pool=task_pool)
+                     relabel_query=relabel_query, task_envs=task_envs, task_pool=task_pool)
         for name, value in given.items():
             if value is not NotProvided:
                 setattr(self, CONFIG_ATTRS.get(name, name), value)
@@ -223,7 +226,10 @@ class MetaPOCA(POCA):
         at_theta = [e for t in tasks for e in t.support]
         if rule in ("multitask", "maml_dr"):  # every batch at theta, tasks mixed
             query = [e for t in tasks for e in t.query]
-            at_theta += query if rule == "multitask" else copy.deepcopy(query)
+            query = query if rule == "multitask" else copy.deepcopy(query)
+            if self.config.relabel_query:
+                learner.relabel_behaviour(query)
+            at_theta += query
         results = [learner.update(episodes=at_theta, **kwargs)]
         if rule == "multitask" or self.config.maml_weight == 0:
             return results

@@ -47,6 +47,11 @@ class MetaSettings:
     """The MAML term's step size as a fraction of POCA's lr (``maml``, ``maml_dr``): the
     per-task query updates at theta + delta run with lr x maml_weight (with Adam the
     length of their steps); 0 leaves only the update at theta."""
+    relabel_query: bool = False
+    """The update at theta (``maml_dr``, ``multitask``) takes the query episodes, sampled by
+    the adapted actors theta'_i, as if theta had sampled them (its PPO ratio starts at 1
+    on them). Without it the ratio starts at pi_theta / pi_theta'_i, one inner update away
+    from 1, and PPO's clip drops many query rows' gradient from the first minibatch on."""
     task_envs: int = 0
     """Envs (worlds) the runner samples each task's batches on, in place of the preset's
     ``num_envs_per_env_runner`` (0: the preset's). One env lets a 4k meta-iteration hold
@@ -65,6 +70,10 @@ class MetaSettings:
         check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
         check_range(prefix + "maml_weight", self.maml_weight, 0.0, 10.0)
         check_range(prefix + "task_envs", self.task_envs, 0, 256)
+        if self.relabel_query and self.outer not in ("maml_dr", "multitask"):
+            fail(prefix + "relabel_query", self.relabel_query,
+                 f"false with outer={self.outer!r} (it relabels the query batches of the "
+                 "update at theta, which only 'maml_dr' and 'multitask' make)")
 
     def fit_preset(self, preset, prefix: str = ""):
         """The training preset as a MetaPOCA run uses it: support and query steps that fill
