@@ -32,7 +32,6 @@ adapted actors are loaded between support and query sampling.
 from __future__ import annotations
 
 import copy
-import inspect
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -61,6 +60,8 @@ from rl_scan.results import META_AFTER, META_BEFORE, META_DELTA_NORM, META_TERM_
 
 CONFIG_ATTRS = {"tasks": "meta_tasks", "outer": "outer_rule"}
 """MetaSettings fields whose MetaPOCAConfig attribute has another name."""
+META_KEYWORDS = (*(f.name for f in fields(MetaSettings)), "task_pool")
+"""The meta settings ``MetaPOCAConfig.meta`` and ``meta_poca_config`` take."""
 
 
 class MetaPOCAConfig(POCAConfig):
@@ -81,20 +82,12 @@ class MetaPOCAConfig(POCAConfig):
         self.task_envs = 0
         self.task_pool = N_TRAIN
 
-    def meta(self, *, tasks: int = NotProvided, support_steps: int = NotProvided,
-             query_steps: int = NotProvided, inner_updates: int = NotProvided,
-             inner_lr: float = NotProvided, inner_adam: str = NotProvided,
-             outer: str = NotProvided, reptile_lr: float = NotProvided,
-             maml_weight: float = NotProvided, relabel_query: bool = NotProvided,
-             task_envs: int = NotProvided,
-             task_pool: int = NotProvided) -> MetaPOCAConfig:
-        """Meta settings (``MetaSettings`` documents each); ``task_pool``: tasks are drawn
-        from ``train:0`` .. ``train:{task_pool - 1}``."""
-        given = dict(tasks=tasks, support_steps=support_steps, query_steps=query_steps,
-                     inner_updates=inner_updates, inner_lr=inner_lr, inner_adam=inner_adam,
-                     outer=outer, reptile_lr=reptile_lr, maml_weight=maml_weight,
-                     relabel_query=relabel_query, task_envs=task_envs, task_pool=task_pool)
-        for name, value in given.items():
+    def meta(self, **settings: Any) -> MetaPOCAConfig:
+        """Meta settings by name: the fields of ``MetaSettings`` (which documents each) and
+        ``task_pool`` (tasks are drawn from ``train:0`` .. ``train:{task_pool - 1}``)."""
+        for name, value in settings.items():
+            if name not in META_KEYWORDS:
+                fail("meta", name, f"one of {list(META_KEYWORDS)}")
             if value is not NotProvided:
                 setattr(self, CONFIG_ATTRS.get(name, name), value)
         return self
@@ -278,5 +271,4 @@ def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size
     return config.meta(**meta)
 
 
-META_KEYWORDS = tuple(inspect.signature(MetaPOCAConfig.meta).parameters)[1:]
-"""The meta settings ``meta_poca_config`` takes (``MetaPOCAConfig.meta``'s keywords)."""
+
