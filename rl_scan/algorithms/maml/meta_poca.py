@@ -269,6 +269,3 @@ def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size
     config = poca_config(env_config, base=MetaPOCAConfig(), train_batch_size=train_batch_size,
                          minibatch_size=minibatch_size, **kwargs)
     return config.meta(**meta)
-
-
-
