@@ -40,6 +40,8 @@ def test_tests_must_be_held_out_scenarios():
     (["--seeds", "0"], "seeds=0"),
     (["--tests", "train:1"], "train set"),
     (["--jobs", "0"], "jobs=0"),
+    (["--meta", "relabel_query=true", "--meta", "outer=maml"], "relabel_query=True"),
+    (["--meta", "tasks=2", "--methods", "dr,poca"], "meta='tasks=2'"),
     # one more run at a time than this machine's CPUs hold (smoke runs take one CPU each)
     (["--jobs", str(os.cpu_count() + 1)], f"jobs={os.cpu_count() + 1} is invalid: allowed at "
                                           f"most {os.cpu_count()}"),
@@ -68,6 +70,26 @@ def test_every_paper_run_is_checked_up_front_and_meta_poca_samples_locally(tmp_p
     with pytest.raises(ConfigError, match="comm_scheme"):
         check_jobs(plan_jobs(tmp_path, ["poca"], ["test:0"], 1, PROTOCOLS["smoke"],
                              {"comm_scheme": 9}))
+
+
+def test_meta_settings_reach_meta_mrss_pretraining_only_and_a_rerun_must_keep_them(
+        tmp_path, capsys):
+    plan = plan_jobs(tmp_path, ["meta-mrss", "dr"], ["test:0"], seeds=1,
+                     protocol=PROTOCOLS["quick"], env_config={},
+                     meta_settings={"relabel_query": True})
+    settings = {j.name: j.kwargs.get("settings_overrides") for j in plan}
+    assert settings == {"meta-mrss_s0": {"relabel_query": True}, "meta-mrss_test0_s0": None,
+                        "dr_s0": None, "dr_test0_s0": None}
+    with pytest.raises(ConfigError, match="inner_adam=.adamw. is invalid"):
+        check_jobs(plan_jobs(tmp_path, ["meta-mrss"], ["test:0"], 1, PROTOCOLS["quick"], {},
+                             meta_settings={"inner_adam": "adamw"}))
+    # an experiment started with other settings is refused, before Ray starts
+    folder = tmp_path / "meta-mrss"
+    folder.mkdir()
+    R.write_yaml(folder / R.PROTOCOL_FILE, {"meta_settings": {"relabel_query": True}})
+    code = main(["experiment", "meta-mrss", "--preset", "smoke", "--results", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 2 and "meta='(none)' is invalid" in err and "relabel_query" in err
 
 
 def test_curve_metrics_by_hand():

@@ -80,6 +80,21 @@ def _add_sampler_arg(p: argparse.ArgumentParser) -> None:
                    + f" (default {DEFAULT_SAMPLER})")
 
 
+def _add_meta_arg(parser: argparse.ArgumentParser) -> None:
+    """--meta KEY=VALUE: MetaPOCA settings over the preset's (meta-train, the protocol)."""
+    parser.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
+                        help="a meta setting over the preset's: tasks, support_steps, "
+                             "query_steps, inner_updates, inner_lr (the inner updates' lr as "
+                             "a multiple of POCA's), inner_adam (fresh or meta), outer "
+                             "(maml; maml_dr: maml whose update at theta also learns from "
+                             "the query batches; reptile; or multitask: the control without "
+                             "the MAML shift), reptile_lr, maml_weight (the MAML term's lr "
+                             "as a fraction of POCA's), relabel_query (true: the update at "
+                             "theta takes the adapted actors' query episodes as its own), "
+                             "task_envs (envs each task samples on; 0: the preset's) "
+                             "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from rl_scan.cli.env_args import add_env_args
 
@@ -185,18 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "checkpoints as `train`; --scenario is what evaluation uses.")
     _add_run_args(mt, "meta-poca_SCENARIO_PRESET_sSEED")
     mt.add_argument("--total-env-steps", type=int, default=None, help="override the budget")
-    mt.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
-                    help="a meta setting over the preset's: tasks, support_steps, "
-                         "query_steps, inner_updates, inner_lr (the inner updates' lr as a "
-                         "multiple of POCA's), inner_adam (fresh or meta), outer "
-                         "(maml; maml_dr: maml whose update at theta also learns from "
-                         "the query batches; reptile; or multitask: the control without "
-                         "the MAML shift), reptile_lr, maml_weight (the MAML term's "
-                         "lr as a fraction of POCA's), relabel_query (true: the update at "
-                         "theta takes the adapted actors' query episodes as its own), "
-                         "task_envs (envs each task samples "
-                         "on; 0: the preset's) "
-                         "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
+    _add_meta_arg(mt)
     mt.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                     help="warm start from this checkpoint's (or run folder's) weights, "
                          "e.g. a domain-randomisation run")
@@ -294,6 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     mm.add_argument("--address", default=None, help="Ray cluster address (default: local)")
     mm.add_argument("--results", default="results")
     mm.add_argument("--name", default="meta-mrss")
+    _add_meta_arg(mm)
     _add_sampler_arg(mm)
     _add_resources_arg(mm)
     mm.set_defaults(func=commands.experiment_cmd)

@@ -128,14 +128,16 @@ def train(algo: str, env_config: dict[str, Any], preset_name: str = "smoke", *,
           seed: int = 0, results_dir: str | Path = "results", name: str | None = None,
           address: str | None = None, resume: bool = False,
           preset_overrides: dict[str, Any] | None = None, init_from: str | Path | None = None,
-          console=None) -> Path:
+          settings_overrides: dict[str, Any] | None = None, console=None) -> Path:
     """Run (or resume) one Tune training run; returns its run folder.
 
     ``init_from``: a checkpoint (or run folder) whose module weights the run starts from
     (adaptation / fine-tuning); recorded in the run folder's RUN_FILE.
+    ``settings_overrides``: the algorithm's own settings over its preset's (MetaPOCA's).
     """
     spec = make_run_spec(algo, env_config, preset_name, seed=seed,
-                         preset_overrides=preset_overrides, init_from=init_from)
+                         preset_overrides=preset_overrides, init_from=init_from,
+                         settings_overrides=settings_overrides)
     return train_spec(spec, results_dir=results_dir, name=name, address=address,
                       resume=resume, console=console)
 

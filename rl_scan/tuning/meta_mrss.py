@@ -87,10 +87,12 @@ def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protoco
 
 def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
               protocol: Protocol, env_config: dict[str, Any],
-              preset_overrides: dict[str, Any] | None = None) -> list[Job]:
+              preset_overrides: dict[str, Any] | None = None,
+              meta_settings: dict[str, Any] | None = None) -> list[Job]:
     """Every run of the protocol, seed by seed (the order runs start in): each method's
     pre-training, then its adaptation to every test scene (which waits for it).
-    ``preset_overrides`` (e.g. the sampler) apply to every run."""
+    ``preset_overrides`` (e.g. the sampler) apply to every run, ``meta_settings``
+    (MetaPOCA's, over its preset's) to meta-MRSS's pre-training."""
     common = dict(preset_overrides or {})
     jobs = []
     for seed in range(seeds):
@@ -99,13 +101,15 @@ def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
             if method in PRETRAIN:
                 algo, scenario = PRETRAIN[method]
                 overrides = {**common, "total_env_steps": protocol.pretrain_steps}
+                settings = meta_settings if method == "meta-mrss" else None
                 if get_algorithm(algo).local_sampling:
                     overrides.update(num_env_runners=0)
                 pre = Job(f"pre-train {method} (seed {seed}, {protocol.pretrain_steps:,} "
                           "env steps)", root / R.PRETRAIN_DIR, f"{method}_s{seed}",
                           dict(algo=algo, env_config={**env_config, "scenario": scenario},
                                preset_name=protocol.train_preset, seed=seed,
-                               preset_overrides=overrides), env_steps=protocol.pretrain_steps)
+                               preset_overrides=overrides, settings_overrides=settings),
+                          env_steps=protocol.pretrain_steps)
                 jobs.append(pre)
             for test in tests:
                 jobs.append(Job(
@@ -130,7 +134,21 @@ def check_jobs(jobs: list[Job]) -> None:
         if key not in seen:
             seen.add(key)
             make_run_spec(kw["algo"], kw["env_config"], kw["preset_name"], seed=kw["seed"],
-                          preset_overrides=kw["preset_overrides"]).algorithm_config()
+                          preset_overrides=kw["preset_overrides"],
+                          settings_overrides=kw.get("settings_overrides")).algorithm_config()
+
+
+def check_same_meta_settings(root: Path, meta_settings: dict[str, Any]) -> None:
+    """A re-run resumes the experiment it finds: its meta-MRSS runs were started with the
+    meta settings recorded then, which a resume cannot change."""
+    file = root / R.PROTOCOL_FILE
+    if not file.is_file():
+        return
+    recorded = (R.read_yaml(file) or {}).get("meta_settings") or {}
+    if recorded != meta_settings:
+        fail("meta", meta_settings or "(none)",
+             f"the settings {root} was started with ({recorded or 'none'}): re-running "
+             "resumes it; a new --name starts a new experiment")
 
 
 def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
@@ -138,11 +156,13 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
                  seeds: int = 3, env_config: dict[str, Any] | None = None,
                  protocol_overrides: dict[str, int] | None = None, jobs: int | None = None,
                  address: str | None = None, preset_overrides: dict[str, Any] | None = None,
-                 console=None) -> dict:
+                 meta_settings: dict[str, Any] | None = None, console=None) -> dict:
     """Pre-train and adapt every method on every test scene and seed; returns the summary.
 
     ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold);
-    ``preset_overrides`` (e.g. ``{"sampler": "rllib"}``) apply to every run.
+    ``preset_overrides`` (e.g. ``{"sampler": "rllib"}``) apply to every run;
+    ``meta_settings`` (e.g. ``{"relabel_query": True}``) to meta-MRSS's pre-training,
+    over the train preset's MetaPOCA settings.
     """
     from rich.console import Console
 
@@ -153,12 +173,18 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     tests = tests or [f"test:{i}" for i in range(N_TEST)]
     methods = list(methods)
     validate(methods, tests, seeds, protocol)
+    meta_settings = dict(meta_settings or {})
+    if meta_settings and "meta-mrss" not in methods:
+        fail("meta", ",".join(f"{k}={v}" for k, v in meta_settings.items()),
+             "none unless the methods include meta-mrss (only its pre-training uses them)")
     if jobs is not None:
         check_range("jobs", jobs, 1)
     env_config = dict(env_config or {})
     root = Path(results_dir).resolve() / name
-    plan = plan_jobs(root, methods, tests, seeds, protocol, env_config, preset_overrides)
+    plan = plan_jobs(root, methods, tests, seeds, protocol, env_config, preset_overrides,
+                     meta_settings)
     check_jobs(plan)
+    check_same_meta_settings(root, meta_settings)
     run_preset = get_preset(protocol.train_preset, preset_overrides)
     need = required_cpus(run_preset)
     cpus = _available_cpus(address)
@@ -170,7 +196,7 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     root.mkdir(parents=True, exist_ok=True)
     R.write_yaml(root / R.PROTOCOL_FILE, {  # lets a report say what is missing
         "preset": preset, "methods": methods, "tests": tests, "seeds": seeds,
-        "protocol": dict(protocol.__dict__),
+        "protocol": dict(protocol.__dict__), "meta_settings": meta_settings,
         "planned_runs": {kind: sum(j.folder.name == kind for j in plan)
                          for kind in (R.PRETRAIN_DIR, R.ADAPT_DIR)}})
     console.print(f"[bold]meta-mrss[/]: {len(plan)} runs, {workers} at a time -> {root}")
