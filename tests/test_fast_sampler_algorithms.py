@@ -52,7 +52,7 @@ def test_the_sampler_is_chosen_per_run_and_bad_input_fails_before_ray():
     (["train", "--algo", "ppo"], "rl_scan.tuning.launch.train_spec", "spec"),
     (["meta-train"], "rl_scan.tuning.launch.train_spec", "spec"),
     (["ablate", "team"], "rl_scan.tuning.ablate.ablate", "preset_overrides"),
-    (["experiment", "meta-mrss"], "rl_scan.tuning.meta_mrss.run_protocol", "preset_overrides"),
+    (["experiment", "meta-mrss"], "rl_scan.tuning.meta_mrss.run_protocol", "overrides"),
 ])
 def test_the_sampler_flag_reaches_every_run(monkeypatch, capsys, tmp_path, argv, target, where):
     seen = {}
@@ -65,6 +65,8 @@ def test_the_sampler_flag_reaches_every_run(monkeypatch, capsys, tmp_path, argv,
     assert main([*argv, "--preset", "smoke", "--sampler", "rllib"]) == 0
     if where == "spec":
         assert seen["spec"].preset.sampler == "rllib"
+    elif where == "overrides":
+        assert seen["overrides"].runs["sampler"] == "rllib"
     else:
         assert seen["preset_overrides"]["sampler"] == "rllib"
     capsys.readouterr()

@@ -326,16 +326,16 @@ def adapt_cmd(args: argparse.Namespace) -> int:
 
 def experiment_cmd(args: argparse.Namespace) -> int:
     from rl_scan.cli.env_args import parse_set
-    from rl_scan.tuning.meta_mrss import parse_tests, run_protocol
+    from rl_scan.tuning.meta_mrss import Overrides, parse_tests, run_protocol
 
-    overrides = {k: v for k, v in (("pretrain_steps", args.pretrain_steps),
-                                   ("adapt_steps", args.adapt_steps)) if v is not None}
+    budgets = {k: v for k, v in (("pretrain_steps", args.pretrain_steps),
+                                 ("adapt_steps", args.adapt_steps)) if v is not None}
+    overrides = Overrides(budgets=budgets, runs=preset_overrides_from_args(args) or {},
+                          meta=parse_set(args.meta, "--meta", "relabel_query=true") or {})
     run_protocol(args.results, args.name, preset=args.preset,
                  methods=[m.strip() for m in args.methods.split(",") if m.strip()],
-                 tests=parse_tests(args.tests), seeds=args.seeds,
-                 protocol_overrides=overrides, jobs=args.jobs, address=args.address,
-                 preset_overrides=preset_overrides_from_args(args) or None,
-                 meta_settings=parse_set(args.meta, "--meta", "relabel_query=true") or None)
+                 tests=parse_tests(args.tests), seeds=args.seeds, overrides=overrides,
+                 jobs=args.jobs, address=args.address)
     return 0
 
 

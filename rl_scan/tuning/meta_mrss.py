@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -151,29 +152,39 @@ def check_same_meta_settings(root: Path, meta_settings: dict[str, Any]) -> None:
              "resumes it; a new --name starts a new experiment")
 
 
+@dataclass(frozen=True)
+class Overrides:
+    """What an experiment changes from its protocol preset (each empty by default)."""
+
+    budgets: dict[str, int] = field(default_factory=dict)
+    """Protocol fields, e.g. ``{"pretrain_steps": 1_000_000}``."""
+    runs: dict[str, Any] = field(default_factory=dict)
+    """Train preset fields of every run, e.g. ``{"sampler": "rllib"}``."""
+    meta: dict[str, Any] = field(default_factory=dict)
+    """MetaPOCA settings of meta-MRSS's pre-training, e.g. ``{"relabel_query": True}``."""
+
+
 def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
                  methods: tuple[str, ...] | list[str] = METHODS, tests: list[str] | None = None,
                  seeds: int = 3, env_config: dict[str, Any] | None = None,
-                 protocol_overrides: dict[str, int] | None = None, jobs: int | None = None,
-                 address: str | None = None, preset_overrides: dict[str, Any] | None = None,
-                 meta_settings: dict[str, Any] | None = None, console=None) -> dict:
+                 overrides: Overrides | None = None, jobs: int | None = None,
+                 address: str | None = None, console=None) -> dict:
     """Pre-train and adapt every method on every test scene and seed; returns the summary.
 
-    ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold);
-    ``preset_overrides`` (e.g. ``{"sampler": "rllib"}``) apply to every run;
-    ``meta_settings`` (e.g. ``{"relabel_query": True}``) to meta-MRSS's pre-training,
-    over the train preset's MetaPOCA settings.
+    ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold).
     """
     from rich.console import Console
 
     console = console or Console()
+    overrides = overrides or Overrides()
     if preset not in PROTOCOLS:
         fail("preset", preset, f"one of {sorted(PROTOCOLS)}")
-    protocol = Protocol(**{**PROTOCOLS[preset].__dict__, **(protocol_overrides or {})})
+    protocol = Protocol(**{**PROTOCOLS[preset].__dict__, **overrides.budgets})
+    preset_overrides = overrides.runs or None
     tests = tests or [f"test:{i}" for i in range(N_TEST)]
     methods = list(methods)
     validate(methods, tests, seeds, protocol)
-    meta_settings = dict(meta_settings or {})
+    meta_settings = dict(overrides.meta)
     if meta_settings and "meta-mrss" not in methods:
         fail("meta", ",".join(f"{k}={v}" for k, v in meta_settings.items()),
              "none unless the methods include meta-mrss (only its pre-training uses them)")
