@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -158,8 +159,6 @@ def test_the_greedy_reference_line_is_the_greedy_teams_mean_coverage(tmp_path):
 def test_a_report_rebuilds_from_its_own_folder(tmp_path):
     """Every table regenerates from a report's runs.json; from marl_eval.json alone (older
     reports) the coverage statistics and P(X > Y) do."""
-    import shutil
-
     _study(tmp_path / "results", {"poca": [0.96, 0.90, 0.98, 0.70],
                                   "ppo": [0.50, 0.60, 0.97, 0.40]})
     first = build_report(tmp_path / "results", tmp_path / "first", reference=False)
@@ -339,9 +338,13 @@ def test_meta_training_diagnostics_are_tabled_per_run(tmp_path):
         R.append_meta(run, {R.ITERATION: it, R.ENV_STEPS: it * 100, R.META_BEFORE: before,
                             R.META_AFTER: after, R.META_DELTA_NORM: norm})
     plain = RunRecord("meta-mrss/pretrain", "dr", 0, tmp_path / "dr_s0")  # no meta file
-    lines = meta_lines([RunRecord("meta-mrss/pretrain", "meta-mrss", 0, run), plain])
+    meta = RunRecord("meta-mrss/pretrain", "meta-mrss", 0, run,
+                     meta=R.read_json(run / R.META_FILE))
+    lines = meta_lines([meta, plain])
     assert lines[-1] == "| meta-mrss_s0 | 2 | +15.0 | 2 |"  # gains .1, .2; norms 1, 3
     assert meta_lines([plain]) == []
+    shutil.rmtree(run)  # a report rebuilt from runs.json, without the run folder
+    assert meta_lines([RunRecord.from_json(json.loads(json.dumps(meta.to_json())))]) == lines
 
 
 def test_a_hetero_map_alone_makes_a_report_with_its_heatmap_and_winning_region(tmp_path):

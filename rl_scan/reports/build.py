@@ -233,8 +233,7 @@ def critic_lines(runs: list[RunRecord]) -> list[str]:
 def meta_lines(runs: list[RunRecord]) -> list[str]:
     """MetaPOCA's meta-training diagnostics per run (its META_FILE): the adaptation gain
     and the inner update's step over the last half of its meta-iterations."""
-    rows = [(r, R.adaptation_gain(entries)) for r in runs
-            if (entries := R.read_json(r.path / R.META_FILE))]
+    rows = [(r, R.adaptation_gain(r.meta)) for r in runs if r.meta]
     if not rows:
         return []
     return ["", "Meta-training diagnostics (MetaPOCA), over the last half of each run's "

@@ -40,6 +40,9 @@ class RunRecord:
     best_eval: dict[str, Any] | None = None  # BEST_EVAL_FILE (evaluate --best)
     critic: dict[str, list[tuple[int, float]]] = field(default_factory=dict)
     """POCA's explained variances over training ("V", "b_<kind>"), from Tune's progress."""
+    meta: list[dict[str, Any]] = field(default_factory=list)
+    """A MetaPOCA run's META_FILE entries (one per meta-iteration), kept in runs.json so a
+    rebuilt report still tables the adaptation gain."""
 
     @property
     def curve(self) -> list[tuple[int, float]]:
@@ -111,7 +114,8 @@ def read_run(folder: Path, group: str, condition: str) -> RunRecord:
                      env_steps=steps, time_total_s=seconds,
                      scenario=(meta.get("env_config") or {}).get("scenario", ""),
                      algo=meta.get("algo", ""),
-                     best_eval=R.read_json(folder / R.BEST_EVAL_FILE), critic=critic)
+                     best_eval=R.read_json(folder / R.BEST_EVAL_FILE), critic=critic,
+                     meta=R.read_json(folder / R.META_FILE) or [])
 
 
 def trial_condition(params: dict[str, Any]) -> str:
