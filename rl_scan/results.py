@@ -77,6 +77,7 @@ EV_BASELINE = "explained_variance_baseline"  # POCA, under each actor module: it
 META_BEFORE = "meta/coverage_before_adaptation"  # MetaPOCA: support episodes' coverage
 META_AFTER = "meta/coverage_after_adaptation"  # MetaPOCA: query episodes' coverage
 META_DELTA_NORM = "meta/delta_norm"  # MetaPOCA: mean over tasks of ||theta'_i - theta||
+META_DELTA_COSINE = "meta/delta_cosine"  # MetaPOCA: mean cosine between tasks' delta_i
 META_TERM_RESULTS = "meta/maml_term"  # MetaPOCA: learner results at theta + delta_i
 META_FILE = "meta_diagnostics.json"  # in a MetaPOCA run folder: one entry per meta-iteration
 
@@ -121,20 +122,26 @@ def append_meta(folder: Path, result: dict[str, Any]) -> None:
     path = Path(folder) / META_FILE
     entry = {ITERATION: result.get(ITERATION, 0), "env_steps": result.get(ENV_STEPS),
              "before": result.get(META_BEFORE), "after": result.get(META_AFTER),
-             "delta_norm": result.get(META_DELTA_NORM)}
+             "delta_norm": result.get(META_DELTA_NORM),
+             "delta_cosine": result.get(META_DELTA_COSINE)}
     entries = [e for e in read_json(path) or [] if e[ITERATION] < entry[ITERATION]]
     write_json(path, [*entries, entry])
 
 
 def adaptation_gain(entries: list[dict[str, Any]]) -> dict[str, float]:
-    """Mean support->query coverage gain and mean ||delta|| over the last half of a
-    MetaPOCA run's meta-iterations (nan without entries)."""
+    """Mean support->query coverage gain, ||delta|| and cosine between the tasks' deltas
+    over the last half of a MetaPOCA run's meta-iterations (nan where nothing was
+    recorded: no entries, one task per iteration, runs older than the cosine)."""
     last = entries[len(entries) // 2:]
-    gains = [e["after"] - e["before"] for e in last
-             if e.get("after") is not None and e.get("before") is not None]
-    norms = [e["delta_norm"] for e in last if e.get("delta_norm") is not None]
-    return {"gain": float(sum(gains) / len(gains)) if gains else float("nan"),
-            "delta_norm": float(sum(norms) / len(norms)) if norms else float("nan"),
+
+    def mean(values: list[Any]) -> float:
+        ok = [float(v) for v in values if v is not None and v == v]  # v == v: not nan
+        return sum(ok) / len(ok) if ok else float("nan")
+
+    return {"gain": mean([e["after"] - e["before"] for e in last
+                          if e.get("after") is not None and e.get("before") is not None]),
+            "delta_norm": mean([e.get("delta_norm") for e in last]),
+            "delta_cosine": mean([e.get("delta_cosine") for e in last]),
             "iterations": len(last)}
 
 

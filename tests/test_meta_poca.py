@@ -260,7 +260,7 @@ def test_a_meta_iteration_learns_from_every_step_it_charges(ray_session):
     charged = result["env_runners"]["num_env_steps_sampled_lifetime"]
     assert charged == sum(sampled) == 2 * (24 + 48)
     assert sampled == [24, 48, 24, 48]
-    assert result["meta/delta_norm"] > 0
+    assert result["meta/delta_norm"] > 0 and -1 <= result["meta/delta_cosine"] <= 1
     # 2 inner updates, the update at theta, 2 at theta + delta_i: the learners' results are
     # the update at theta's (as POCA's are), the MAML term's are logged apart
     assert len(evs) == 5 and len(set(evs)) == 5
@@ -384,4 +384,3 @@ def test_a_restored_run_draws_the_tasks_the_uninterrupted_run_draws(ray_session,
     first = restored.meta_tasks_of(0)
     restored.stop()
     assert expected != first  # tasks change from one iteration to the next
-

@@ -333,15 +333,16 @@ def test_meta_training_diagnostics_are_tabled_per_run(tmp_path):
 
     run = tmp_path / "meta-mrss_s0"
     run.mkdir()
-    for it, (before, after, norm) in enumerate([(0.1, 0.0, 4.0), (0.2, 0.3, 1.0),
-                                                (0.3, 0.5, 3.0)], start=1):
+    for it, (before, after, norm, cos) in enumerate([(0.1, 0.0, 4.0, 0.9), (0.2, 0.3, 1.0, 0.5),
+                                                     (0.3, 0.5, 3.0, 0.2)], start=1):
         R.append_meta(run, {R.ITERATION: it, R.ENV_STEPS: it * 100, R.META_BEFORE: before,
-                            R.META_AFTER: after, R.META_DELTA_NORM: norm})
+                            R.META_AFTER: after, R.META_DELTA_NORM: norm,
+                            R.META_DELTA_COSINE: cos})
     plain = RunRecord("meta-mrss/pretrain", "dr", 0, tmp_path / "dr_s0")  # no meta file
     meta = RunRecord("meta-mrss/pretrain", "meta-mrss", 0, run,
                      meta=R.read_json(run / R.META_FILE))
     lines = meta_lines([meta, plain])
-    assert lines[-1] == "| meta-mrss_s0 | 2 | +15.0 | 2 |"  # gains .1, .2; norms 1, 3
+    assert lines[-1] == "| meta-mrss_s0 | 2 | +15.0 | 2 | 0.35 |"  # gains .1, .2; norms 1, 3
     assert meta_lines([plain]) == []
     shutil.rmtree(run)  # a report rebuilt from runs.json, without the run folder
     assert meta_lines([RunRecord.from_json(json.loads(json.dumps(meta.to_json())))]) == lines

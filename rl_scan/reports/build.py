@@ -239,11 +239,17 @@ def meta_lines(runs: list[RunRecord]) -> list[str]:
     return ["", "Meta-training diagnostics (MetaPOCA), over the last half of each run's "
             "meta-iterations: adaptation gain = coverage of the query episodes (adapted "
             "weights) - coverage of the support episodes (meta weights), in points; ||delta|| = "
-            "how far the inner update moved the parameters.", "",
-            "| run | meta-iterations (last half) | adaptation gain | ‖delta‖ |",
-            "|---|---|---|---|",
+            "how far the inner update moved the parameters; cos = the mean cosine between "
+            "the tasks' deltas of an iteration (near 1: every scene adapted the same way).",
+            "",
+            "| run | meta-iterations (last half) | adaptation gain | ‖delta‖ | cos |",
+            "|---|---|---|---|---|",
             *(f"| {r.path.name} | {g['iterations']} | {100 * g['gain']:+.1f} | "
-              f"{g['delta_norm']:.3g} |" for r, g in rows)]
+              f"{g['delta_norm']:.3g} | {_fmt_cos(g['delta_cosine'])} |" for r, g in rows)]
+
+
+def _fmt_cos(value: float) -> str:
+    return "-" if math.isnan(value) else f"{value:.2f}"
 
 
 def add_comparison(data: Collection, compare: str | Path) -> None:

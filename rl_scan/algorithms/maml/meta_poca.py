@@ -56,7 +56,13 @@ from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
 from rl_scan.config import check_range, fail
 from rl_scan.envs.sim.env_config import EnvConfig
 from rl_scan.envs.sim.scenarios import N_TRAIN
-from rl_scan.results import META_AFTER, META_BEFORE, META_DELTA_NORM, META_TERM_RESULTS
+from rl_scan.results import (
+    META_AFTER,
+    META_BEFORE,
+    META_DELTA_COSINE,
+    META_DELTA_NORM,
+    META_TERM_RESULTS,
+)
 
 CONFIG_ATTRS = {"tasks": "meta_tasks", "outer": "outer_rule"}
 """MetaSettings fields whose MetaPOCAConfig attribute has another name."""
@@ -195,6 +201,8 @@ class MetaPOCA(POCA):
             [e for t in tasks for e in t.query]), window=1)
         self.metrics.log_value(META_DELTA_NORM, float(np.mean(
             [delta_norm(learner, t.delta) for t in tasks])), window=1)
+        self.metrics.log_value(META_DELTA_COSINE, delta_cosine(
+            [t.delta for t in tasks], parameter_keys(learner)), window=1)
         with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
             results = self._outer_update(learner, tasks)
         # The update at theta is DR's on the same data, so its results (the critic's
@@ -248,11 +256,28 @@ class MetaPOCA(POCA):
             runner.module[mid].load_state_dict(sd)
 
 
+def parameter_keys(learner: MetaPOCALearner) -> list[Key]:
+    """The keys of a delta that are parameters (not the critic's return moments)."""
+    return sorted((mid, n) for mid in learner.module.keys()
+                  for n, _ in learner.module[mid].named_parameters())
+
+
 def delta_norm(learner: MetaPOCALearner, delta: dict[Key, torch.Tensor]) -> float:
     """||delta|| over the parameters (not the return moments)."""
-    params = {(mid, n) for mid in learner.module.keys()
-              for n, _ in learner.module[mid].named_parameters()}
-    return float(torch.sqrt(sum((d * d).sum() for k, d in delta.items() if k in params)))
+    return float(torch.sqrt(sum((delta[k] * delta[k]).sum() for k in parameter_keys(learner))))
+
+
+def delta_cosine(deltas: list[dict[Key, torch.Tensor]], keys: list[Key]) -> float:
+    """Mean cosine similarity over pairs of the tasks' deltas (over ``keys``; nan with one
+    task): near 1, the inner update moves every scene's policy the same way (e.g. along
+    the meta optimizer's momentum), not towards what its scene rewards."""
+    if len(deltas) < 2:
+        return float("nan")
+    flat = torch.stack([torch.cat([d[k].flatten() for k in keys]) for d in deltas])
+    unit = flat / flat.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    cos = unit @ unit.T
+    n = len(deltas)
+    return float((cos.sum() - cos.diagonal().sum()) / (n * (n - 1)))
 
 
 def meta_poca_config(env_config: EnvConfig | dict[str, Any], *, train_batch_size: int = 4_000,
