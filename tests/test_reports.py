@@ -388,3 +388,34 @@ def test_each_paper_claim_gets_the_verdict_its_ci_implies(tmp_path):
     assert "| 2,2 > 4,0 | 0.67 " in md and "(ours: not a claim of the paper) | - |" in md
     again = (build_report(out, tmp_path / "again", reference=False) / "report.md").read_text()
     assert "(Sec. IV-B) | reversed |" in again  # claims survive the rebuild from runs.json
+
+
+def test_a_study_run_in_parts_reports_as_one(tmp_path):
+    """--add: seed 0 in one folder and seeds 1-3 in another (two sessions, one --name) give
+    the tables of the whole study; a run here replaces its namesake in the added folder."""
+    finals = {"poca": [0.96, 0.90, 0.98, 0.70], "ppo": [0.50, 0.60, 0.97, 0.40]}
+    whole = _study(tmp_path / "whole", finals)
+    for part, keep in (("first", lambda seed: seed == 0), ("rest", lambda seed: seed > 0)):
+        shutil.copytree(whole, tmp_path / part / whole.name)
+        for run in (tmp_path / part / whole.name / R.TRIALS_DIR).iterdir():
+            if not keep(int(run.name.split("_")[1])):
+                shutil.rmtree(run)
+    first = build_report(tmp_path / "first", tmp_path / "first_report", reference=False)
+    merged = build_report(tmp_path / "rest", tmp_path / "merged", reference=False, add=[first])
+    one = build_report(tmp_path / "whole", tmp_path / "one", reference=False)
+    tables = [[line for line in (d / "report.md").read_text().splitlines()
+               if line.startswith("| poca")] for d in (merged, one)]
+    assert tables[0] == tables[1] and "| poca > ppo | 0.81" in "\n".join(tables[0])
+    # the whole study added to its own part: the part's 6 runs replace their namesakes
+    again = build_report(tmp_path / "rest", tmp_path / "again", reference=False, add=[one])
+    text = (again / "report.md").read_text()
+    assert "8 runs read from" in text and "(6 added runs replaced" in text
+    other = _study(tmp_path / "other", {"poca": [0.5]})
+    (other / R.STUDY_FILE).write_text(yaml.safe_dump(
+        {"study": "algo", "trials": 1, "env_config": {"comm_scheme": 3}}))
+    with pytest.raises(ConfigError, match="env settings"):
+        build_report(tmp_path / "rest", tmp_path / "bad", reference=False, add=[other.parent])
+    (tmp_path / "empty").mkdir()
+    for nothing in (tmp_path / "empty", tmp_path / "nothing.json"):
+        with pytest.raises(ConfigError, match="add="):
+            build_report(tmp_path / "rest", tmp_path / "bad", reference=False, add=[nothing])

@@ -365,6 +365,6 @@ def report_cmd(args: argparse.Namespace) -> int:
     from rl_scan.reports.build import build_report
 
     out = build_report(args.results_dir, args.out, reference=not args.no_reference,
-                       compare=args.compare)
+                       compare=args.compare, add=args.add)
     print(f"wrote {out / 'report.md'}, {out / 'report.html'}, {out / 'marl_eval.json'}")
     return 0

@@ -269,6 +269,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="an earlier report (its folder or marl_eval.json, e.g. a committed "
                          "example): its runs are drawn and tabled beside these, each condition "
                          "compared with its namesake")
+    rp.add_argument("--add", action="append", default=[], metavar="FOLDER",
+                    help="a results folder or an earlier report's folder (its runs.json) "
+                         "whose runs join these as the same study (repeatable): a study "
+                         "run in parts, e.g. other seeds in another session under the same "
+                         "--name, reports as one; a run in RESULTS_DIR replaces its "
+                         "namesake (same study, condition and seed)")
     rp.set_defaults(func=commands.report_cmd)
 
     ex = sub.add_parser("experiment", formatter_class=fmt, help="multi-run protocols",

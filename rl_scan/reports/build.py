@@ -17,12 +17,12 @@ are exported in marl-eval's JSON layout (``marl_eval.json``).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
 import platform
 from collections import defaultdict
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,8 +34,9 @@ from rl_scan.reports.collect import (
     MARL_EVAL_FILE,
     Collection,
     RunRecord,
+    add_comparison,
+    add_runs,
     collect,
-    read_marl_eval,
     runs_file,
 )
 from rl_scan.reports.figures import CONVERGED, plot_curves
@@ -252,22 +253,6 @@ def _fmt_cos(value: float) -> str:
     return "-" if math.isnan(value) else f"{value:.2f}"
 
 
-def add_comparison(data: Collection, compare: str | Path) -> None:
-    """Add an earlier report's runs (``read_marl_eval``) and compare each condition of
-    this report with its namesake there."""
-    path = Path(compare).resolve()
-    label = (path if path.is_dir() else path.parent).name
-    earlier = read_marl_eval(path, label)
-    ours = {(r.group, r.condition) for r in data.runs}
-    for group in {r.group for r in earlier}:
-        spec = data.reports.get(group, ReportSpec())
-        pairs = tuple(sorted({(c, f"{c} [{label}]") for g, c in ours
-                              if g == group and any(e.condition == f"{c} [{label}]"
-                                                    for e in earlier)}))
-        data.reports[group] = dataclasses.replace(spec, comparisons=spec.comparisons + pairs)
-    data.runs += earlier
-
-
 def bench_lines(results_dir: Path) -> list[str]:
     """Figures of any ``rl-scan bench env|train --json`` files in the results folder."""
     lines = []
@@ -307,27 +292,38 @@ def hardware() -> dict[str, str]:
             "rl_scan": rl_scan.__version__, "ray": ray.__version__, "torch": torch.__version__}
 
 
+def _shown(path: Path) -> Path:
+    """``path`` relative to the working folder where it lies under it."""
+    return path.relative_to(Path.cwd()) if path.is_relative_to(Path.cwd()) else path
+
+
 def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
-                 reference: bool = True, compare: str | Path | None = None) -> Path:
+                 reference: bool = True, compare: str | Path | None = None,
+                 add: Sequence[str | Path] = ()) -> Path:
     """Write report.md, report.html, figures/*.png and marl_eval.json; returns out_dir.
 
     ``compare``: an earlier report (its folder or marl_eval.json) whose runs join the same
-    groups, labelled with its folder name, each condition compared with its namesake."""
+    groups, labelled with its folder name, each condition compared with its namesake.
+    ``add``: results or report folders whose runs join as runs of their own groups
+    (``collect.add_runs``: the parts of one study); a run here replaces its namesake."""
     results_dir = Path(results_dir).resolve()
     if not results_dir.is_dir():
         raise ValueError(f"results_dir={str(results_dir)!r} is not a folder")
     out = Path(out_dir).resolve() if out_dir else results_dir / "report"
-    (out / "figures").mkdir(parents=True, exist_ok=True)
     data: Collection = collect(results_dir)
+    skipped = sum(add_runs(data, source) for source in add)  # refused before writing
+    (out / "figures").mkdir(parents=True, exist_ok=True)
     maps = hetero_map_lines(results_dir, out / "figures", data)
     if not data.runs and not maps:
         raise ValueError(f"results_dir={str(results_dir)!r} holds no rl-scan runs or studies")
     if compare is not None:
         add_comparison(data, compare)
-    shown = (results_dir.relative_to(Path.cwd()) if results_dir.is_relative_to(Path.cwd())
-             else results_dir)
+    shown = _shown(results_dir)
+    sources = "".join(f", `{_shown(Path(a).resolve())}`" for a in add)
     md = [f"# rl-scan report: {results_dir.name}", "",
-          f"{len(data.runs)} runs read from `{shown}`. Scores are final-checkpoint "
+          f"{len(data.runs)} runs read from `{shown}`{sources}"
+          + (f" ({skipped} added runs replaced by their namesakes here)" if skipped else "")
+          + ". Scores are final-checkpoint "
           "scores (each run's last evaluation); bands are ± 1 sample std (light) and the 95 % t "
           "interval of the mean (dark, n - 1 degrees of freedom) over seeds. P(X > Y) is "
           "rliable's probability of improvement: per task (scenario) over all pairs of runs, "

@@ -203,6 +203,55 @@ def collect(root: str | Path) -> Collection:
     return out
 
 
+def add_comparison(data: Collection, compare: str | Path) -> None:
+    """Add an earlier report's runs (``read_marl_eval``) and compare each condition of
+    this report with its namesake there."""
+    path = Path(compare).resolve()
+    label = (path if path.is_dir() else path.parent).name
+    earlier = read_marl_eval(path, label)
+    ours = {(r.group, r.condition) for r in data.runs}
+    for group in {r.group for r in earlier}:
+        spec = data.reports.get(group, ReportSpec())
+        pairs = tuple(sorted({(c, f"{c} [{label}]") for g, c in ours
+                              if g == group and any(e.condition == f"{c} [{label}]"
+                                                    for e in earlier)}))
+        data.reports[group] = replace(spec, comparisons=spec.comparisons + pairs)
+    data.runs += earlier
+
+
+def add_runs(data: Collection, source: str | Path) -> int:
+    """Add the runs of ``source`` (a results folder, or a report folder's REPORT_RUNS_FILE)
+    to ``data`` as runs of their own groups, unlabelled (``--compare`` labels them): a
+    study run in parts (other seeds or conditions, in other sessions or on other
+    machines, under one ``--name``) reports as one. A run of the same group, condition
+    and seed already in ``data`` is kept and its namesake skipped; returns how many were.
+    """
+    path = Path(source).resolve()
+    if not path.is_dir():
+        raise ConfigError(f"add={str(path)!r} is invalid: allowed a results folder or a "
+                          f"report folder with its {R.REPORT_RUNS_FILE}")
+    earlier = collect(path)
+    if not earlier.runs or earlier.rebuilt_from == MARL_EVAL_FILE:
+        raise ConfigError(f"add={str(path)!r} is invalid: it holds no run folders and no "
+                          f"{R.REPORT_RUNS_FILE} (reports older than that file can only be "
+                          "compared: --compare)")
+    for group, env in earlier.envs.items():
+        if group in data.envs and data.envs[group] != env:
+            raise ConfigError(f"add={str(path)!r} is invalid: its study {group!r} ran with "
+                              f"env settings {env}, the one here with {data.envs[group]}; "
+                              "allowed only parts of one study")
+    here = {(r.group, r.condition, r.seed) for r in data.runs}
+    new = [r for r in earlier.runs if (r.group, r.condition, r.seed) not in here]
+    data.runs += new
+    for group, planned in earlier.planned.items():
+        data.planned[group] = max(planned, data.planned.get(group, 0))
+    for mine, theirs in ((data.kinds, earlier.kinds), (data.envs, earlier.envs),
+                         (data.reports, earlier.reports)):
+        for group, value in theirs.items():
+            mine.setdefault(group, value)
+    return len(earlier.runs) - len(new)
+
+
 def _kind_from_name(group: str) -> str:
     """A group's kind from its default name (reports older than REPORT_RUNS_FILE)."""
     if group.startswith("ablate-") and group.count("-") >= 2:
