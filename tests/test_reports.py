@@ -1,5 +1,6 @@
-"""Reports: statistics against hand-computed values, and a report built from a synthetic
-ablation study folder (every figure written, tables and marl-eval export correct)."""
+"""Reports built from synthetic study folders: every figure written, tables, claims and
+the marl-eval export correct, rebuilt from runs.json, compared and joined from parts
+(the statistics' hand-computed checks are in test_report_stats.py)."""
 
 from __future__ import annotations
 
@@ -15,9 +16,7 @@ from rl_scan import results as R
 from rl_scan.config import ConfigError
 from rl_scan.reports.build import build_report, condition_rows, greedy_reference
 from rl_scan.reports.collect import collect
-from rl_scan.reports.stats import (
-    wilson_interval,
-)
+from rl_scan.reports.stats import wilson_interval
 
 
 def _study(root, finals: dict[str, list[float]], episodes: int = 3, kind: str = "algo"):
