@@ -38,6 +38,7 @@ def test_tests_must_be_held_out_scenarios():
     (["--methods", "maml"], "methods='maml'"),
     (["--adapt-steps", "0"], "adapt_steps=0"),
     (["--seeds", "0"], "seeds=0"),
+    (["--seed", "-1"], "seed=-1"),
     (["--tests", "train:1"], "train set"),
     (["--jobs", "0"], "jobs=0"),
     (["--meta", "relabel_query=true", "--meta", "outer=maml"], "relabel_query=True"),
@@ -70,6 +71,21 @@ def test_every_paper_run_is_checked_up_front_and_meta_poca_samples_locally(tmp_p
     with pytest.raises(ConfigError, match="comm_scheme"):
         check_jobs(plan_jobs(tmp_path, ["poca"], ["test:0"], 1, PROTOCOLS["smoke"],
                              {"comm_scheme": 9}))
+
+
+def test_a_protocol_run_a_seed_at_a_time_plans_and_summarises_that_seed_only(tmp_path):
+    """--seed 2 --seeds 1: every run is seed 2's (names, seeds, the adaptation's start),
+    and its summary reads seed 2's curves, not seed 0's beside them."""
+    plan = plan_jobs(tmp_path, ["dr", "poca"], ["test:0"], seeds=1,
+                     protocol=PROTOCOLS["quick"], env_config={}, first_seed=2)
+    assert [(j.name, j.kwargs["seed"]) for j in plan] == [
+        ("dr_s2", 2), ("dr_test0_s2", 2), ("poca_test0_s2", 2)]
+    assert plan[1].kwargs["init_from"] == tmp_path / R.PRETRAIN_DIR / "dr_s2"
+    _eval_file(tmp_path, "poca", "test:0", 0, [(400, 0.1)])
+    _eval_file(tmp_path, "poca", "test:0", 2, [(400, 0.7)])
+    s = summarize(tmp_path, ["poca"], ["test:0"], seeds=1, budget=400, first_seed=2)
+    assert s["methods"]["poca"]["final_coverage"]["values"] == pytest.approx([0.7])
+    assert s["common"] == ["test:0 s2"] and not s["missing"]
 
 
 def test_meta_settings_reach_meta_mrss_pretraining_only_and_a_rerun_must_keep_them(

@@ -352,3 +352,25 @@ def test_a_study_run_in_parts_reports_as_one(tmp_path):
     for nothing in (tmp_path / "empty", tmp_path / "nothing.json"):
         with pytest.raises(ConfigError, match="add="):
             build_report(tmp_path / "rest", tmp_path / "bad", reference=False, add=[nothing])
+
+
+def test_meta_mrss_parts_keep_every_scene_of_a_method_and_seed(tmp_path):
+    """A meta-MRSS adaptation group holds one run per method, seed and test scene: the run
+    here replaces only its own scene's namesake in the added part, not the other scenes."""
+    from rl_scan.reports.collect import add_runs
+
+    def adapt_run(root, test, final):
+        run = root / "mm" / R.ADAPT_DIR / f"poca_test{test}_s0"
+        run.mkdir(parents=True)
+        (run / R.RUN_FILE).write_text(yaml.safe_dump(
+            {"algo": "poca", "seed": 0, "env_config": {"scenario": f"test:{test}"}}))
+        (run / R.EVAL_FILE).write_text(json.dumps(
+            [{"training_iteration": 1, "env_steps": 400, "coverage": final}]))
+
+    for test, final in ((0, 0.2), (1, 0.3)):
+        adapt_run(tmp_path / "earlier", test, final)
+    adapt_run(tmp_path / "here", 0, 0.9)
+    data = collect(tmp_path / "here")
+    assert add_runs(data, tmp_path / "earlier") == 1
+    assert sorted((r.scenario, r.final_coverage) for r in data.runs) == [
+        ("test:0", 0.9), ("test:1", 0.3)]

@@ -334,7 +334,8 @@ def experiment_cmd(args: argparse.Namespace) -> int:
                           meta=parse_set(args.meta, "--meta", "relabel_query=true") or {})
     run_protocol(args.results, args.name, preset=args.preset,
                  methods=[m.strip() for m in args.methods.split(",") if m.strip()],
-                 tests=parse_tests(args.tests), seeds=args.seeds, overrides=overrides,
+                 tests=parse_tests(args.tests), seeds=args.seeds, first_seed=args.seed,
+                 overrides=overrides,
                  jobs=args.jobs, address=args.address)
     return 0
 

@@ -294,6 +294,10 @@ def build_parser() -> argparse.ArgumentParser:
                         f"{name} {p.pretrain_steps:,} + {p.adapt_steps:,}"
                         for name, p in PROTOCOLS.items()))
     mm.add_argument("--seeds", type=int, default=3, help="seeds per method and test scene")
+    mm.add_argument("--seed", type=int, default=0,
+                    help="the first seed (seeds SEED .. SEED+SEEDS-1): a protocol longer than "
+                         "one sitting runs a seed at a time, e.g. --seed 1 --seeds 1, and "
+                         "`rl-scan report RESULTS --add EARLIER` joins the parts")
     mm.add_argument("--tests", default="0,1,2,3,4", help="test scenario indices (0-4)")
     mm.add_argument("--methods", default="meta-mrss,dr,transfer,poca",
                     help="comma-separated subset of meta-mrss,dr,transfer,poca")

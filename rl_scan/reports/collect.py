@@ -223,8 +223,9 @@ def add_runs(data: Collection, source: str | Path) -> int:
     """Add the runs of ``source`` (a results folder, or a report folder's REPORT_RUNS_FILE)
     to ``data`` as runs of their own groups, unlabelled (``--compare`` labels them): a
     study run in parts (other seeds or conditions, in other sessions or on other
-    machines, under one ``--name``) reports as one. A run of the same group, condition
-    and seed already in ``data`` is kept and its namesake skipped; returns how many were.
+    machines, under one ``--name``) reports as one. A run of the same group, condition,
+    seed and scenario already in ``data`` is kept and its namesake skipped; returns how
+    many were.
     """
     path = Path(source).resolve()
     if not path.is_dir():
@@ -240,8 +241,8 @@ def add_runs(data: Collection, source: str | Path) -> int:
             raise ConfigError(f"add={str(path)!r} is invalid: its study {group!r} ran with "
                               f"env settings {env}, the one here with {data.envs[group]}; "
                               "allowed only parts of one study")
-    here = {(r.group, r.condition, r.seed) for r in data.runs}
-    new = [r for r in earlier.runs if (r.group, r.condition, r.seed) not in here]
+    here = {_run_key(r) for r in data.runs}
+    new = [r for r in earlier.runs if _run_key(r) not in here]
     data.runs += new
     for group, planned in earlier.planned.items():
         data.planned[group] = max(planned, data.planned.get(group, 0))
@@ -250,6 +251,12 @@ def add_runs(data: Collection, source: str | Path) -> int:
         for group, value in theirs.items():
             mine.setdefault(group, value)
     return len(earlier.runs) - len(new)
+
+
+def _run_key(run: RunRecord) -> tuple[str, str, int, str]:
+    """What makes a run a namesake of another: its group, condition and seed, and its
+    scenario (a meta-MRSS adaptation group holds one run per method, seed and test scene)."""
+    return run.group, run.condition, run.seed, run.scenario
 
 
 def _kind_from_name(group: str) -> str:

@@ -73,13 +73,15 @@ def parse_tests(text: str) -> list[str]:
     return out
 
 
-def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protocol) -> None:
+def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protocol,
+             first_seed: int = 0) -> None:
     for m in methods:
         if m not in METHODS:
             fail("methods", m, f"any of {', '.join(METHODS)}")
     if not methods:
         fail("methods", "", f"any of {', '.join(METHODS)}")
     check_range("seeds", seeds, 1, 100)
+    check_range("seed", first_seed, 0, 10_000)
     check_range("pretrain_steps", protocol.pretrain_steps, 1)
     check_range("adapt_steps", protocol.adapt_steps, 1)
     check_range("eval_interval", protocol.eval_interval, 1)
@@ -89,14 +91,15 @@ def validate(methods: list[str], tests: list[str], seeds: int, protocol: Protoco
 def plan_jobs(root: Path, methods: list[str], tests: list[str], seeds: int,
               protocol: Protocol, env_config: dict[str, Any],
               preset_overrides: dict[str, Any] | None = None,
-              meta_settings: dict[str, Any] | None = None) -> list[Job]:
-    """Every run of the protocol, seed by seed (the order runs start in): each method's
+              meta_settings: dict[str, Any] | None = None, first_seed: int = 0) -> list[Job]:
+    """Every run of the protocol, seed by seed (seeds ``first_seed`` ..
+    ``first_seed + seeds - 1``, the order runs start in): each method's
     pre-training, then its adaptation to every test scene (which waits for it).
     ``preset_overrides`` (e.g. the sampler) apply to every run, ``meta_settings``
     (MetaPOCA's, over its preset's) to meta-MRSS's pre-training."""
     common = dict(preset_overrides or {})
     jobs = []
-    for seed in range(seeds):
+    for seed in range(first_seed, first_seed + seeds):
         for method in methods:
             pre = None
             if method in PRETRAIN:
@@ -166,12 +169,16 @@ class Overrides:
 
 def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
                  methods: tuple[str, ...] | list[str] = METHODS, tests: list[str] | None = None,
-                 seeds: int = 3, env_config: dict[str, Any] | None = None,
+                 seeds: int = 3, first_seed: int = 0,
+                 env_config: dict[str, Any] | None = None,
                  overrides: Overrides | None = None, jobs: int | None = None,
                  address: str | None = None, console=None) -> dict:
     """Pre-train and adapt every method on every test scene and seed; returns the summary.
 
-    ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold).
+    ``jobs`` runs at once (default: as many as the Ray cluster's CPUs hold). The seeds are
+    ``first_seed`` .. ``first_seed + seeds - 1``: a protocol too long for one sitting runs
+    a seed at a time (in other sessions or on other machines) and ``rl-scan report --add``
+    joins the parts.
     """
     from rich.console import Console
 
@@ -183,7 +190,7 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     preset_overrides = overrides.runs or None
     tests = tests or [f"test:{i}" for i in range(N_TEST)]
     methods = list(methods)
-    validate(methods, tests, seeds, protocol)
+    validate(methods, tests, seeds, protocol, first_seed)
     meta_settings = dict(overrides.meta)
     if meta_settings and "meta-mrss" not in methods:
         fail("meta", ",".join(f"{k}={v}" for k, v in meta_settings.items()),
@@ -193,7 +200,7 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     env_config = dict(env_config or {})
     root = Path(results_dir).resolve() / name
     plan = plan_jobs(root, methods, tests, seeds, protocol, env_config, preset_overrides,
-                     meta_settings)
+                     meta_settings, first_seed)
     check_jobs(plan)
     check_same_meta_settings(root, meta_settings)
     run_preset = get_preset(protocol.train_preset, preset_overrides)
@@ -207,12 +214,14 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     root.mkdir(parents=True, exist_ok=True)
     R.write_yaml(root / R.PROTOCOL_FILE, {  # lets a report say what is missing
         "preset": preset, "methods": methods, "tests": tests, "seeds": seeds,
+        "first_seed": first_seed,
         "protocol": dict(protocol.__dict__), "meta_settings": meta_settings,
         "planned_runs": {kind: sum(j.folder.name == kind for j in plan)
                          for kind in (R.PRETRAIN_DIR, R.ADAPT_DIR)}})
     console.print(f"[bold]meta-mrss[/]: {len(plan)} runs, {workers} at a time -> {root}")
     run_jobs(plan, workers, console, address=address)
-    summary = summarize(root, methods, tests, seeds, budget=protocol.adapt_steps)
+    summary = summarize(root, methods, tests, seeds, budget=protocol.adapt_steps,
+                        first_seed=first_seed)
     R.write_json(root / R.SUMMARY_FILE, summary)
     (root / R.TABLE_FILE).write_text(format_table(summary))
     console.print(format_table(summary))
@@ -244,21 +253,22 @@ def curve_metrics(entries: list[dict[str, Any]], budget: float,
 
 
 def summarize(root: Path, methods: list[str], tests: list[str], seeds: int,
-              budget: float) -> dict:
+              budget: float, first_seed: int = 0) -> dict:
     """Per method: each seed's mean over the test scenes, then mean and sample std over
     seeds. Every method is summarised on the same (scene, seed) pairs: those that all
     methods have finished; the others are listed as missing or left out."""
+    seed_range = range(first_seed, first_seed + seeds)
     curves: dict[tuple[str, str, int], list] = {}
     out: dict[str, Any] = {"methods": {}, "missing": [], "left_out": []}
     for method in methods:
-        for seed in range(seeds):
+        for seed in seed_range:
             for test in tests:
                 run = root / R.ADAPT_DIR / f"{method}_{scenario_label(test)}_s{seed}"
                 if (run / R.EVAL_FILE).is_file():
                     curves[method, test, seed] = R.read_evals(run)
                 else:
                     out["missing"].append(str(run))
-    common = [(t, s) for s in range(seeds) for t in tests
+    common = [(t, s) for s in seed_range for t in tests
               if all((m, t, s) in curves for m in methods)]
     out["left_out"] = sorted(f"{m}_{scenario_label(t)}_s{s}" for (m, t, s) in curves
                              if (t, s) not in common)
@@ -267,7 +277,7 @@ def summarize(root: Path, methods: list[str], tests: list[str], seeds: int,
     for method in methods:
         per_seed: dict[str, list[float]] = {k: [] for k in keys}
         runs = {}
-        for seed in range(seeds):
+        for seed in seed_range:
             rows = []
             for test in (t for t, s in common if s == seed):
                 entries = curves[method, test, seed]
@@ -282,7 +292,7 @@ def summarize(root: Path, methods: list[str], tests: list[str], seeds: int,
             for k, v in per_seed.items()}
         out["methods"][method]["runs"] = runs
     gains = [R.adaptation_gain(R.read_json(run / R.META_FILE) or [])
-             for seed in range(seeds) if "meta-mrss" in methods
+             for seed in seed_range if "meta-mrss" in methods
              if (run := root / R.PRETRAIN_DIR / f"meta-mrss_s{seed}").is_dir()]
     if gains:
         out["meta_training"] = {k: {"mean": _nanstat(np.nanmean, [g[k] for g in gains]),
