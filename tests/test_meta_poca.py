@@ -134,7 +134,7 @@ def test_the_inner_update_may_continue_the_meta_adam_state_and_leaves_it_as_it_w
     plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
     meta_adam = {n: copy.deepcopy(o.state_dict()) for n, o in learner._named_optimizers.items()}
     _seeded()
-    delta, _, _ = learner.adapt(support, {}, fresh_adam=False)
+    delta, _, _ = learner.adapt(support, {}, adam="meta")
     _seeded()
     plain.update(episodes=copy.deepcopy(support), **plain.update_kwargs({}))
     reached = {k: t.detach() for k, t in plain.float_state().items()}
@@ -143,10 +143,49 @@ def test_the_inner_update_may_continue_the_meta_adam_state_and_leaves_it_as_it_w
     _seeded()
     fresh, _, _ = learner.adapt(support, {})
     assert any(not torch.allclose(fresh[k], delta[k]) for k in delta)
+    _seeded()
+    scaled, _, _ = learner.adapt(support, {}, adam="scale")  # beta1 = 0 inside only
+    assert any(not torch.allclose(scaled[k], delta[k]) for k in delta)
     for name, opt in learner._named_optimizers.items():
+        assert opt.param_groups[0]["betas"] == meta_adam[name]["param_groups"][0]["betas"]
         for p, st in opt.state_dict()["state"].items():
             for k, v in st.items():
                 assert torch.equal(v, meta_adam[name]["state"][p][k]), (name, k)
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_inner_adam_scale_steps_by_the_task_gradient_over_the_meta_second_moment(fused):
+    """inner_adam='scale' by hand: after two meta steps (g1, g2) the inner step on g3 is
+    lr * g3 / (sqrt(v3 / (1 - b2^3)) + eps), v3 = b2 v2 + (1 - b2) g3^2: no momentum (m = g3,
+    beta1 = 0), the meta optimizer's per-weight scale; the saved meta state, loaded back,
+    brings beta1 back. 'fresh' forgets the moments, 'meta' keeps them."""
+    from rl_scan.algorithms.maml.learners import inner_adam_state
+
+    lr, b2, eps = 0.1, 0.999, 1e-8
+    g1, g2, g3 = [0.5, -1.0], [0.2, 0.4], [1.0, 0.1]
+    p = torch.nn.Parameter(torch.tensor([1.0, -2.0]))
+    opt = torch.optim.Adam([p], lr=lr, betas=(0.9, b2), eps=eps, fused=fused)
+    for g in (g1, g2):
+        p.grad = torch.tensor(g)
+        opt.step()
+    meta_state = copy.deepcopy(opt.state_dict())
+    before = p.detach().clone()
+    inner_adam_state(opt, "scale")
+    p.grad = torch.tensor(g3)
+    opt.step()
+    for i in range(2):
+        v3 = b2 * (b2 * (1 - b2) * g1[i] ** 2 + (1 - b2) * g2[i] ** 2) + (1 - b2) * g3[i] ** 2
+        step = lr * g3[i] / (math.sqrt(v3 / (1 - b2 ** 3)) + eps)
+        assert (before[i] - p[i]).item() == pytest.approx(step, rel=1e-5)
+    opt.load_state_dict(meta_state)  # what adapt's restore does
+    assert opt.param_groups[0]["betas"] == (0.9, b2)
+    assert opt.state[p]["exp_avg"].abs().sum() > 0
+    inner_adam_state(opt, "meta")
+    assert torch.equal(opt.state[p]["exp_avg"], meta_state["state"][0]["exp_avg"])
+    inner_adam_state(opt, "fresh")
+    assert not opt.state
+    with pytest.raises(ValueError, match="scale"):
+        inner_adam_state(opt, "adamw")
 
 
 def _params(learner) -> dict:

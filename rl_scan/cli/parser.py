@@ -85,7 +85,7 @@ def _add_meta_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
                         help="a meta setting over the preset's: tasks, support_steps, "
                              "query_steps, inner_updates, inner_lr (the inner updates' lr as "
-                             "a multiple of POCA's), inner_adam (fresh or meta), outer "
+                             "a multiple of POCA's), inner_adam (fresh, meta or scale), outer "
                              "(maml; maml_dr: maml whose update at theta also learns from "
                              "the query batches; reptile; or multitask: the control without "
                              "the MAML shift), reptile_lr, maml_weight (the MAML term's lr "

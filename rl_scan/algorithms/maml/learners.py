@@ -41,6 +41,30 @@ from rl_scan.algorithms.poca.modules import CRITIC_ID
 Key = tuple[str, str]  # (module id, parameter or buffer name)
 
 
+def inner_adam_state(optimizer: torch.optim.Adam, mode: str) -> None:
+    """In place, the Adam state an inner update starts from (``_restore`` puts the meta
+    state and hyperparameters back afterwards).
+
+    ``fresh``  no moments: the first steps move every weight by about lr (m / sqrt(v) ~
+               sign(g)), whatever the gradient's size;
+    ``meta``   the meta optimizer's moments as they are: the steps continue its momentum,
+               so every task's step leans the same way;
+    ``scale``  the meta optimizer's second moment and step count only, first moment
+               zeroed and beta1 = 0: a step is lr * g / sqrt(v_meta), the task's own
+               gradient direction at the scale the meta optimizer has learnt per weight.
+    """
+    if mode == "fresh":
+        optimizer.state.clear()
+    elif mode == "scale":
+        for group in optimizer.param_groups:
+            group["betas"] = (0.0, group["betas"][1])
+        for state in optimizer.state.values():
+            if "exp_avg" in state:
+                state["exp_avg"].zero_()
+    elif mode != "meta":
+        raise ValueError(f"inner Adam mode {mode!r}: allowed fresh, meta, scale")
+
+
 class MetaPOCALearner(POCATorchLearner):
     """POCA's learner with ``adapt``, ``shifted`` and ``reptile_step`` (see the module doc)."""
 
@@ -58,12 +82,12 @@ class MetaPOCALearner(POCATorchLearner):
                 if t.is_floating_point()}
 
     def adapt(self, episodes: list, timesteps: dict[str, Any], updates: int = 1,
-              start: dict[Key, torch.Tensor] | None = None, fresh_adam: bool = True,
+              start: dict[Key, torch.Tensor] | None = None, adam: str = "fresh",
               lr_scale: float = 1.0
               ) -> tuple[dict[Key, torch.Tensor], dict[str, dict[str, torch.Tensor]], dict]:
         """``updates`` ordinary POCA updates on ``episodes`` from theta (or theta + ``start``)
-        with a fresh Adam (or, ``fresh_adam=False``, from a copy of the meta Adam's state)
-        at POCA's lr x ``lr_scale``.
+        at POCA's lr x ``lr_scale``, with the Adam state ``adam`` names
+        (``inner_adam_state``: fresh, a copy of the meta Adam's, or its scale only).
 
         Returns (delta = the state reached - theta, the adapted actors' state dicts, the
         last update's results); the learner is back at theta, its optimizer state the
@@ -76,9 +100,8 @@ class MetaPOCALearner(POCATorchLearner):
             with torch.no_grad():
                 for key, t in self.float_state().items():
                     t.add_(start[key])
-        if fresh_adam:
-            for optimizer in self._named_optimizers.values():
-                optimizer.state.clear()  # fresh moments: Adam starts as a new optimizer does
+        for optimizer in self._named_optimizers.values():
+            inner_adam_state(optimizer, adam)
         for _ in range(updates):
             with self.lr_scaled(lr_scale):  # per update: RLlib resets the lr after each
                 results = self.update(episodes=copy.deepcopy(episodes),

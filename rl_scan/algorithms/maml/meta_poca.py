@@ -187,7 +187,7 @@ class MetaPOCA(POCA):
             with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
                 delta, adapted, _ = learner.adapt(support, self._timesteps(),
                                                   cfg.inner_updates,
-                                                  fresh_adam=cfg.inner_adam == "fresh",
+                                                  adam=cfg.inner_adam,
                                                   lr_scale=cfg.inner_lr)
             query = self._sample(runner, adapted, cfg.query_steps)
             tasks.append(Task(scenario, support, query, delta))

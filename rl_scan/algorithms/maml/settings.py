@@ -9,7 +9,7 @@ from rl_scan.config import check_range, fail
 from rl_scan.envs.sim.scenarios import N_TRAIN
 
 OUTER_RULES = ("maml", "maml_dr", "reptile", "multitask")
-INNER_ADAM = ("fresh", "meta")
+INNER_ADAM = ("fresh", "meta", "scale")
 
 
 @dataclass(frozen=True)
@@ -33,8 +33,10 @@ class MetaSettings:
     POCA's lr moves the policy about one training iteration's worth, too little for a
     scene to show in the adapted policy's coverage (docs/DESIGN.md, #16)."""
     inner_adam: str = "fresh"
-    """The inner update's Adam state: ``fresh`` (a new optimizer, the paper's reading) or
-    ``meta`` (a copy of the meta optimizer's moments: the inner steps continue its scale)."""
+    """The inner update's Adam state: ``fresh`` (a new optimizer, the paper's reading),
+    ``meta`` (a copy of the meta optimizer's moments: the inner steps continue its
+    momentum) or ``scale`` (its second moment only: the task's gradient direction at the
+    meta optimizer's per-weight scale; ``learners.inner_adam_state``)."""
     outer: str = "maml"
     """``maml``: first-order MAML-PPO on support (at theta) and query (at theta + delta)
     batches; ``maml_dr``: the same with the update at theta on every batch (DR's update
