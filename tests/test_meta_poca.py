@@ -1,5 +1,5 @@
-"""MetaPOCA (first-order MAML-PPO over POCA): the inner update is POCA's own, the query
-gradient is the one at theta + delta, the outer loop uses every sampled step.
+"""MetaPOCA's outer loop (first-order MAML-PPO over POCA): the query gradient is the one at
+theta + delta, every sampled step is learned from, bad settings fail before building.
 
 Learners are built standalone (no Ray) on real episodes of the scanning env.
 """
@@ -8,184 +8,26 @@ from __future__ import annotations
 
 import copy
 import math
-import random
 
 import numpy as np
 import pytest
 import torch
-from ray.rllib.env.multi_agent_env_runner import MultiAgentEnvRunner
+from meta_learners import (
+    ENV,
+    TRAINING,
+    make_tasks,
+    meta_setup,
+    outer_update,
+    sample,
+    seeded,
+    state_copy,
+)
 from ray.rllib.utils.metrics.metrics_logger import MetricsLogger
 
 from rl_scan.algorithms.maml import meta_poca_config
-from rl_scan.algorithms.maml.meta_poca import set_task
 from rl_scan.algorithms.poca.modules import CRITIC_ID
-from rl_scan.algorithms.poca.poca import poca_config
 from rl_scan.config import ConfigError
 from rl_scan.results import EV_VALUE, META_TERM_RESULTS
-
-ENV = {"max_steps": 12}
-TRAINING = dict(num_envs_per_env_runner=2, train_batch_size=64, minibatch_size=16,
-                num_epochs=2, lr=1e-3, seed=0)
-
-
-def _setup(**meta):
-    config = meta_poca_config(ENV, **{"tasks": 2, "support_steps": 24, "query_steps": 24,
-                                      "task_pool": 5, **meta}, **TRAINING)
-    runner = MultiAgentEnvRunner(config=config)
-    learner = config.build_learner(env=None, spaces=runner.get_spaces())
-    return config, runner, learner
-
-
-def _sample(runner, scenario: str, steps: int = 24) -> list:
-    set_task(runner, scenario)
-    return runner.sample(num_timesteps=steps, force_reset=True)
-
-
-def _state(learner) -> dict:
-    return {k: t.detach().clone() for k, t in learner.float_state().items()}
-
-
-def _seeded(seed: int = 0) -> None:
-    """Same minibatch shuffles in two learners' updates."""
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-def _outer_update(config, learner, tasks) -> None:
-    """MetaPOCA's outer update on ``tasks`` (it reads only the algorithm's config and
-    timesteps, so no algorithm is built)."""
-    from types import SimpleNamespace
-
-    from rl_scan.algorithms.maml.meta_poca import MetaPOCA
-
-    MetaPOCA._outer_update(SimpleNamespace(config=config, _timesteps=dict), learner, tasks)
-
-
-def _tasks(learner, runner, scenarios=("train:0", "train:1"), adapted_query=False) -> list:
-    """Tasks with support and query batches and the inner update's delta; the query
-    sampled by the adapted actors with ``adapted_query`` (as MetaPOCA samples it), else by
-    theta."""
-    from rl_scan.algorithms.maml.meta_poca import MetaPOCA, Task
-
-    theta = {mid: copy.deepcopy(runner.module[mid].state_dict())
-             for mid in runner.module.keys() if mid != CRITIC_ID}
-    tasks = []
-    for scenario in scenarios:
-        support = _sample(runner, scenario)
-        delta, adapted, _ = learner.adapt(support, {})
-        if adapted_query:
-            MetaPOCA._load_actors(runner, adapted)
-        tasks.append(Task(scenario, support, _sample(runner, scenario), delta))
-        MetaPOCA._load_actors(runner, theta)
-    return tasks
-
-
-@pytest.mark.parametrize("lr_scale", [1.0, 4.0])  # inner_lr: MAML's alpha over beta
-def test_the_inner_update_is_an_ordinary_poca_update_and_leaves_theta_as_it_was(lr_scale):
-    _, runner, learner = _setup()
-    support = _sample(runner, "train:0")
-    # one outer-style update first, so the meta optimizer has state to keep
-    learner.update(episodes=copy.deepcopy(support), **learner.update_kwargs({}))
-    theta = _state(learner)
-    meta_adam = {n: copy.deepcopy(o.state_dict()) for n, o in learner._named_optimizers.items()}
-
-    _seeded()
-    delta, adapted, _ = learner.adapt(support, {}, lr_scale=lr_scale)
-    # a standalone POCA learner from the same weights, with a new Adam at POCA's lr x
-    # lr_scale, on the same batch
-    plain_config = poca_config(ENV, **{**TRAINING, "lr": TRAINING["lr"] * lr_scale})
-    plain = plain_config.build_learner(env=None, spaces=runner.get_spaces())
-    for mid in learner.module.keys():
-        plain.module[mid].load_state_dict(learner.module[mid].state_dict())
-    _seeded()
-    plain.update(episodes=copy.deepcopy(support), timesteps={},
-                 num_epochs=plain_config.num_epochs, minibatch_size=plain_config.minibatch_size,
-                 shuffle_batch_per_epoch=plain_config.shuffle_batch_per_epoch)
-    reached = {(mid, n): t.detach() for mid in plain.module.keys()
-               for n, t in plain.module[mid].state_dict().items() if t.is_floating_point()}
-    moved = 0
-    for key, d in delta.items():
-        torch.testing.assert_close(theta[key] + d, reached[key], rtol=1e-5, atol=1e-6)
-        moved += bool(d.abs().max() > 0)
-    assert moved > 30  # actors and critic alike
-    for mid, sd in adapted.items():
-        for n, t in sd.items():
-            torch.testing.assert_close(t, reached[(mid, n)], rtol=1e-5, atol=1e-6)
-    # the learner is back at theta with the meta optimizer's moments and POCA's lr
-    assert {o.param_groups[0]["lr"] for o in learner._named_optimizers.values()} == {
-        TRAINING["lr"]}
-    for key, t in _state(learner).items():
-        assert torch.equal(t, theta[key]), key
-    for name, opt in learner._named_optimizers.items():
-        for p, st in opt.state_dict()["state"].items():
-            for k, v in st.items():
-                assert torch.equal(v, meta_adam[name]["state"][p][k]), (name, k)
-
-
-def test_the_inner_update_may_continue_the_meta_adam_state_and_leaves_it_as_it_was():
-    """inner_adam='meta': the inner steps start from a copy of the meta optimizer's moments
-    (a standalone learner given the same state takes the same steps)."""
-    config, runner, learner = _setup(inner_adam="meta")
-    support = _sample(runner, "train:0")
-    learner.update(episodes=copy.deepcopy(support), **learner.update_kwargs({}))
-    theta = _state(learner)
-    plain = config.build_learner(env=None, spaces=runner.get_spaces())
-    plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
-    meta_adam = {n: copy.deepcopy(o.state_dict()) for n, o in learner._named_optimizers.items()}
-    _seeded()
-    delta, _, _ = learner.adapt(support, {}, adam="meta")
-    _seeded()
-    plain.update(episodes=copy.deepcopy(support), **plain.update_kwargs({}))
-    reached = {k: t.detach() for k, t in plain.float_state().items()}
-    for key, d in delta.items():
-        torch.testing.assert_close(theta[key] + d, reached[key], rtol=1e-5, atol=1e-6)
-    _seeded()
-    fresh, _, _ = learner.adapt(support, {})
-    assert any(not torch.allclose(fresh[k], delta[k]) for k in delta)
-    _seeded()
-    scaled, _, _ = learner.adapt(support, {}, adam="scale")  # beta1 = 0 inside only
-    assert any(not torch.allclose(scaled[k], delta[k]) for k in delta)
-    for name, opt in learner._named_optimizers.items():
-        assert opt.param_groups[0]["betas"] == meta_adam[name]["param_groups"][0]["betas"]
-        for p, st in opt.state_dict()["state"].items():
-            for k, v in st.items():
-                assert torch.equal(v, meta_adam[name]["state"][p][k]), (name, k)
-
-
-@pytest.mark.parametrize("fused", [False, True])
-def test_inner_adam_scale_steps_by_the_task_gradient_over_the_meta_second_moment(fused):
-    """inner_adam='scale' by hand: after two meta steps (g1, g2) the inner step on g3 is
-    lr * g3 / (sqrt(v3 / (1 - b2^3)) + eps), v3 = b2 v2 + (1 - b2) g3^2: no momentum (m = g3,
-    beta1 = 0), the meta optimizer's per-weight scale; the saved meta state, loaded back,
-    brings beta1 back. 'fresh' forgets the moments, 'meta' keeps them."""
-    from rl_scan.algorithms.maml.learners import inner_adam_state
-
-    lr, b2, eps = 0.1, 0.999, 1e-8
-    g1, g2, g3 = [0.5, -1.0], [0.2, 0.4], [1.0, 0.1]
-    p = torch.nn.Parameter(torch.tensor([1.0, -2.0]))
-    opt = torch.optim.Adam([p], lr=lr, betas=(0.9, b2), eps=eps, fused=fused)
-    for g in (g1, g2):
-        p.grad = torch.tensor(g)
-        opt.step()
-    meta_state = copy.deepcopy(opt.state_dict())
-    before = p.detach().clone()
-    inner_adam_state(opt, "scale")
-    p.grad = torch.tensor(g3)
-    opt.step()
-    for i in range(2):
-        v3 = b2 * (b2 * (1 - b2) * g1[i] ** 2 + (1 - b2) * g2[i] ** 2) + (1 - b2) * g3[i] ** 2
-        step = lr * g3[i] / (math.sqrt(v3 / (1 - b2 ** 3)) + eps)
-        assert (before[i] - p[i]).item() == pytest.approx(step, rel=1e-5)
-    opt.load_state_dict(meta_state)  # what adapt's restore does
-    assert opt.param_groups[0]["betas"] == (0.9, b2)
-    assert opt.state[p]["exp_avg"].abs().sum() > 0
-    inner_adam_state(opt, "meta")
-    assert torch.equal(opt.state[p]["exp_avg"], meta_state["state"][0]["exp_avg"])
-    inner_adam_state(opt, "fresh")
-    assert not opt.state
-    with pytest.raises(ValueError, match="scale"):
-        inner_adam_state(opt, "adamw")
 
 
 def _params(learner) -> dict:
@@ -195,10 +37,10 @@ def _params(learner) -> dict:
 
 def test_a_step_inside_shifted_is_the_step_taken_at_theta_plus_delta():
     """The first-order MAML step: the gradient at theta + delta, applied to theta."""
-    config, runner, learner = _setup()
-    delta, _, _ = learner.adapt(_sample(runner, "train:0"), {})
-    query = _sample(runner, "train:0")
-    theta = _state(learner)
+    config, runner, learner = meta_setup()
+    delta, _, _ = learner.adapt(sample(runner, "train:0"), {})
+    query = sample(runner, "train:0")
+    theta = state_copy(learner)
     # a second learner with the same weights moved to theta + delta (return statistics
     # frozen there too): what functional_call at theta + delta would compute
     loaded = config.build_learner(env=None, spaces=runner.get_spaces())
@@ -209,10 +51,10 @@ def test_a_step_inside_shifted_is_the_step_taken_at_theta_plus_delta():
             p.add_(delta[key])
     loaded.module[CRITIC_ID].return_stats_frozen = True
 
-    _seeded()
+    seeded()
     with learner.shifted(delta):
         learner.update(episodes=copy.deepcopy(query), **learner.update_kwargs({}))
-    _seeded()
+    seeded()
     loaded.update(episodes=copy.deepcopy(query), **loaded.update_kwargs({}))
     after = _params(loaded)
     moved = 0
@@ -225,25 +67,6 @@ def test_a_step_inside_shifted_is_the_step_taken_at_theta_plus_delta():
     assert not learner.module[CRITIC_ID].return_stats_frozen  # only inside the block
 
 
-def test_two_scenarios_adapt_to_different_policies():
-    _, runner, learner = _setup()
-    delta_a, adapted_a, _ = learner.adapt(_sample(runner, "train:0"), {})
-    delta_b, adapted_b, _ = learner.adapt(_sample(runner, "train:3"), {})
-    probe = _sample(runner, "train:0")  # the same observations for both adapted teams
-    for mid in ("wheeled", "quad"):
-        module = copy.deepcopy(learner.module[mid])
-        obs = torch.as_tensor(np.concatenate([
-            np.asarray(e.agent_episodes[a].get_observations()[:-1])
-            for e in probe for a in e.agent_ids if e.agent_episodes[a].module_id == mid]))
-        means = []
-        for adapted in (adapted_a, adapted_b):
-            module.load_state_dict(adapted[mid])
-            with torch.no_grad():
-                means.append(module.forward_inference({"obs": obs})["action_dist_inputs"])
-        theta_out = learner.module[mid].forward_inference({"obs": obs})["action_dist_inputs"]
-        shift_a = (means[0] - theta_out).abs().mean()
-        assert (means[0] - means[1]).abs().mean() > 0.1 * shift_a > 0, mid
-
 
 def _module_rows(episodes, module_id: str) -> int:
     """Rows of a module in POCA's batch: each agent's steps plus the one bootstrap step
@@ -253,8 +76,8 @@ def _module_rows(episodes, module_id: str) -> int:
 
 
 def test_the_outer_update_takes_epochs_times_minibatches_steps_on_every_batch(monkeypatch):
-    config, runner, learner = _setup()
-    tasks = _tasks(learner, runner)
+    config, runner, learner = meta_setup()
+    tasks = make_tasks(learner, runner)
     steps = []
     real = type(learner).apply_gradients
     monkeypatch.setattr(type(learner), "apply_gradients",
@@ -266,7 +89,7 @@ def test_the_outer_update_takes_epochs_times_minibatches_steps_on_every_batch(mo
 
     expected = minibatches([e for t in tasks for e in t.support]) + sum(
         minibatches(t.query) for t in tasks)
-    _outer_update(config, learner, tasks)
+    outer_update(config, learner, tasks)
     assert len(steps) == expected > 2 * config.num_epochs
 
 
@@ -308,15 +131,15 @@ def test_a_meta_iteration_learns_from_every_step_it_charges(ray_session):
 
 
 def test_reptile_moves_theta_by_the_mean_task_delta():
-    config, runner, learner = _setup(outer="reptile", reptile_lr=0.5)
-    theta = _state(learner)
-    tasks = _tasks(learner, runner)
-    _seeded()
+    config, runner, learner = meta_setup(outer="reptile", reptile_lr=0.5)
+    theta = state_copy(learner)
+    tasks = make_tasks(learner, runner)
+    seeded()
     further = [learner.adapt(t.query, {}, 1, start=t.delta)[0] for t in tasks]
 
-    _seeded()
-    _outer_update(config, learner, tasks)
-    for key, t in _state(learner).items():
+    seeded()
+    outer_update(config, learner, tasks)
+    for key, t in state_copy(learner).items():
         expected = theta[key] + 0.5 * (further[0][key] + further[1][key]) / 2
         torch.testing.assert_close(t, expected, rtol=1e-5, atol=1e-6)
 
@@ -329,17 +152,17 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer,
     maml_weight, for the actors only: a standalone learner with the same state making
     those updates ends at the same weights, its critic (and the critic's Adam) where the
     update at theta left it."""
-    config, runner, learner = _setup(outer=outer, maml_weight=weight)
-    tasks = _tasks(learner, runner)
+    config, runner, learner = meta_setup(outer=outer, maml_weight=weight)
+    tasks = make_tasks(learner, runner)
     plain = config.build_learner(env=None, spaces=runner.get_spaces())
     plain.set_state(copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"])))
     mixed = copy.deepcopy([e for t in tasks for e in t.support]
                           + [e for t in tasks for e in t.query])
     queries = copy.deepcopy([t.query for t in tasks])
 
-    _seeded()
-    _outer_update(config, learner, tasks)
-    _seeded()
+    seeded()
+    outer_update(config, learner, tasks)
+    seeded()
     plain.update(episodes=mixed, **plain.update_kwargs({}))
     after_mixed = {k: t.detach().clone() for k, t in plain.float_state().items()}
     critic_adam = copy.deepcopy(plain._named_optimizers[f"{CRITIC_ID}_default_optimizer"]

@@ -7,7 +7,7 @@ import copy
 
 import numpy as np
 import torch
-from test_meta_poca import _outer_update, _sample, _seeded, _setup, _state, _tasks
+from meta_learners import make_tasks, meta_setup, outer_update, sample, seeded, state_copy
 
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 
@@ -19,8 +19,8 @@ def test_relabelled_episodes_carry_the_current_actors_distribution():
     distribution is the moved actors' and the log-probability that of its actions."""
     from ray.rllib.core.columns import Columns
 
-    config, runner, learner = _setup()
-    episodes = _sample(runner, "train:0")
+    config, runner, learner = meta_setup()
+    episodes = sample(runner, "train:0")
     relabelled = copy.deepcopy(episodes)
     learner.relabel_behaviour(relabelled)
     for before, after in zip(episodes, relabelled):
@@ -53,8 +53,8 @@ def test_relabel_query_makes_the_update_at_theta_a_plain_update_on_relabelled_ba
     """multitask + relabel_query: the update at theta equals a plain update on the same
     batches whose query half carries theta's action distribution; without it the query
     rows keep the adapted actors' (so the two differ)."""
-    config, runner, learner = _setup(outer="multitask", relabel_query=True)
-    tasks = _tasks(learner, runner, adapted_query=True)
+    config, runner, learner = meta_setup(outer="multitask", relabel_query=True)
+    tasks = make_tasks(learner, runner, adapted_query=True)
     plain = config.build_learner(env=None, spaces=runner.get_spaces())
     start = copy.deepcopy(learner.get_state(components=["rl_module", "optimizer"]))
     plain.set_state(start)
@@ -63,15 +63,15 @@ def test_relabel_query_makes_the_update_at_theta_a_plain_update_on_relabelled_ba
     plain.relabel_behaviour(query)
     mixed = copy.deepcopy([e for t in tasks for e in t.support]) + query
 
-    _seeded()
-    _outer_update(config, learner, tasks)
-    _seeded()
+    seeded()
+    outer_update(config, learner, tasks)
+    seeded()
     plain.update(episodes=mixed, **plain.update_kwargs({}))
-    reached = _state(plain)
+    reached = state_copy(plain)
     for key, t in learner.float_state().items():
         torch.testing.assert_close(t, reached[key], rtol=1e-5, atol=1e-6)
     plain.set_state(start)
-    _seeded()
+    seeded()
     plain.update(episodes=unlabelled, **plain.update_kwargs({}))
     assert max(float((t - reached[k]).abs().max())
                for k, t in plain.float_state().items()) > 1e-4
