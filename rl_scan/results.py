@@ -26,6 +26,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -191,6 +194,33 @@ def read_json(path: Path) -> Any:
 
 def read_evals(folder: Path) -> list[dict[str, Any]]:
     return read_json(Path(folder) / EVAL_FILE) or []
+
+
+class FolderBusy(RuntimeError):
+    """Another process holds the lock of a run or study folder (``folder_lock``)."""
+
+
+@contextmanager
+def folder_lock(parent: Path, name: str, wait_s: float = 0.0) -> Iterator[None]:
+    """An exclusive lock on ``parent/.NAME.lock``, held by one process at a time and
+    released when it ends (killed or not): two processes resuming one run or study would
+    train the same trials twice into the same files. Waits up to ``wait_s`` (for a run
+    still stopping), then raises ``FolderBusy``."""
+    import fcntl
+
+    parent.mkdir(parents=True, exist_ok=True)
+    lock = parent / f".{name}.lock"
+    with open(lock, "a+") as f:
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise FolderBusy(f"{lock} is held by another process") from None
+                time.sleep(1.0)
+        yield
 
 
 def is_run_folder(folder: Path) -> bool:

@@ -130,6 +130,29 @@ def test_bad_study_input_fails_before_anything_is_written(tmp_path, capsys, argv
     assert "ray" not in sys.modules or not sys.modules["ray"].is_initialized()
 
 
+def test_a_study_another_process_is_running_is_refused(tmp_path, capsys):
+    """Two processes on one study (a second --resume beside the first) would train the
+    same trials twice into the same files: the second is refused before it writes."""
+    with R.folder_lock(tmp_path, "study"):  # held as a running study holds it
+        code = main(["ablate", "algo", "--preset", "smoke", "--results", str(tmp_path),
+                     "--name", "study"])
+    assert code == 2
+    assert ("name='study' is invalid: allowed a study no other process is running"
+            in capsys.readouterr().err)
+    assert not (tmp_path / "study").exists()
+    with R.folder_lock(tmp_path, "study"):  # released with its holder
+        pass
+
+
+def test_a_folder_lock_waits_for_its_holder_then_gives_up(tmp_path):
+    with R.folder_lock(tmp_path, "run"):
+        start = time.monotonic()
+        with pytest.raises(R.FolderBusy, match=r"\.run\.lock is held"):
+            with R.folder_lock(tmp_path, "run", wait_s=1.5):
+                pass
+        assert time.monotonic() - start >= 1.5
+
+
 @pytest.mark.slow
 def test_smoke_study_is_killed_and_resumed_to_completion(tmp_path):
     import optuna

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Sequence
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -144,48 +145,56 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
         base.for_trial(study.name, params).algorithm_config()
     cpus = init_ray(address)
     check_resources(preset, cpus)
+    # One process per study (two would train the same trials into the same files), locked
+    # once the input is checked so that bad input leaves nothing behind.
+    with ExitStack() as held:
+        try:
+            held.enter_context(R.folder_lock(folder.parent, folder.name))
+        except R.FolderBusy:
+            fail("name", name, f"a study no other process is running ({folder.parent}/."
+                               f"{folder.name}.lock is held: wait for that run or stop it)")
 
-    import optuna
-    from ray import tune
-    num_samples = grid_size or trials
-    if not resume:
-        folder.mkdir(parents=True)
-        R.write_yaml(folder / R.STUDY_FILE, {
-            "study": study.name, "preset": preset_name, "seeds": seeds,
-            "first_seed": first_seed, "trials": num_samples,
-            "conditions": list(study.conditions),
-            "evaluation_episodes": preset.evaluation_episodes,
-            "env_config": dict(env_config or {}), "preset_overrides": preset_overrides or {},
-            "git_commit": git_commit(), "started": time.strftime("%Y-%m-%d %H:%M:%S")})
-    trainable = tune.with_resources(
-        tune.with_parameters(train_run, spec=base, study=study.name),
-        trial_resources(preset))
-    concurrent = max(1, int(cpus) // required_cpus(preset))
-    console.print(f"[bold]ablate {study.name}[/]: {num_samples} trials of {preset_name} "
-                  f"({preset.total_env_steps:,} env steps each), {concurrent} at a time "
-                  f"-> {folder}")
-    if resume and (folder / R.TUNE_DIR).is_dir():
-        for line in restore_missing_checkpoints(folder / R.TUNE_DIR):
-            console.print(line)
-        tuner = tune.Tuner.restore(str(folder / R.TUNE_DIR), trainable=trainable,
-                                   resume_errored=True, resume_unfinished=True)
-    else:
-        storage = optuna.storages.RDBStorage(f"sqlite:///{folder / R.OPTUNA_DB}")
-        searcher = resumable_optuna_search(space=space, metric=R.EVAL_SCORE, mode="max",
-                                sampler=sampler, study_name=name, storage=storage)
-        progress = RunProgress(preset.total_env_steps, study_dir=folder, spec=base,
-                               study=study.name, trials=num_samples, concurrent=concurrent)
-        tuner = tune.Tuner(
-            trainable,
-            tune_config=tune.TuneConfig(search_alg=searcher, num_samples=num_samples,
-                                        max_concurrent_trials=concurrent,
-                                        trial_dirname_creator=lambda t: t.trial_id),
-            run_config=tune.RunConfig(
-                storage_path=str(folder), name=R.TUNE_DIR, verbose=0,
-                failure_config=tune.FailureConfig(max_failures=2),
-                checkpoint_config=checkpoint_config(preset), callbacks=[progress]))
-    grid = tuner.fit()
-    failed = [r for r in grid if r.error]
-    if failed:
-        console.print(f"[red]{len(failed)} trial(s) failed[/]: {failed[0].error}")
-    return folder
+        import optuna
+        from ray import tune
+        num_samples = grid_size or trials
+        if not resume:
+            folder.mkdir(parents=True)
+            R.write_yaml(folder / R.STUDY_FILE, {
+                "study": study.name, "preset": preset_name, "seeds": seeds,
+                "first_seed": first_seed, "trials": num_samples,
+                "conditions": list(study.conditions),
+                "evaluation_episodes": preset.evaluation_episodes,
+                "env_config": dict(env_config or {}), "preset_overrides": preset_overrides or {},
+                "git_commit": git_commit(), "started": time.strftime("%Y-%m-%d %H:%M:%S")})
+        trainable = tune.with_resources(
+            tune.with_parameters(train_run, spec=base, study=study.name),
+            trial_resources(preset))
+        concurrent = max(1, int(cpus) // required_cpus(preset))
+        console.print(f"[bold]ablate {study.name}[/]: {num_samples} trials of {preset_name} "
+                      f"({preset.total_env_steps:,} env steps each), {concurrent} at a time "
+                      f"-> {folder}")
+        if resume and (folder / R.TUNE_DIR).is_dir():
+            for line in restore_missing_checkpoints(folder / R.TUNE_DIR):
+                console.print(line)
+            tuner = tune.Tuner.restore(str(folder / R.TUNE_DIR), trainable=trainable,
+                                       resume_errored=True, resume_unfinished=True)
+        else:
+            storage = optuna.storages.RDBStorage(f"sqlite:///{folder / R.OPTUNA_DB}")
+            searcher = resumable_optuna_search(space=space, metric=R.EVAL_SCORE, mode="max",
+                                    sampler=sampler, study_name=name, storage=storage)
+            progress = RunProgress(preset.total_env_steps, study_dir=folder, spec=base,
+                                   study=study.name, trials=num_samples, concurrent=concurrent)
+            tuner = tune.Tuner(
+                trainable,
+                tune_config=tune.TuneConfig(search_alg=searcher, num_samples=num_samples,
+                                            max_concurrent_trials=concurrent,
+                                            trial_dirname_creator=lambda t: t.trial_id),
+                run_config=tune.RunConfig(
+                    storage_path=str(folder), name=R.TUNE_DIR, verbose=0,
+                    failure_config=tune.FailureConfig(max_failures=2),
+                    checkpoint_config=checkpoint_config(preset), callbacks=[progress]))
+        grid = tuner.fit()
+        failed = [r for r in grid if r.error]
+        if failed:
+            console.print(f"[red]{len(failed)} trial(s) failed[/]: {failed[0].error}")
+        return folder

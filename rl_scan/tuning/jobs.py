@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from rl_scan.config import RunInterrupted
-from rl_scan.results import DONE, LOG_DIR, RUN_FILE
+from rl_scan.results import DONE, LOG_DIR, RUN_FILE, FolderBusy, folder_lock
 from rl_scan.tuning.driver import format_duration
 from rl_scan.tuning.launch import train
 
@@ -50,22 +50,13 @@ LOCK_WAIT_S = 300.0
 
 @contextmanager
 def _run_lock(folder: Path, name: str):
-    """An exclusive lock on ``folder/.NAME.lock`` (released when its process ends)."""
-    import fcntl
-
-    folder.mkdir(parents=True, exist_ok=True)
-    with open(folder / f".{name}.lock", "a+") as f:
-        deadline = time.monotonic() + LOCK_WAIT_S
-        while True:
-            try:
-                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"run {name} in {folder} is still being written by "
-                                       f"another process after {LOCK_WAIT_S:.0f} s") from None
-                time.sleep(1.0)
-        yield
+    """The run's folder lock (``results.folder_lock``), waiting for a run still stopping."""
+    try:
+        with folder_lock(folder, name, LOCK_WAIT_S):
+            yield
+    except FolderBusy:
+        raise RuntimeError(f"run {name} in {folder} is still being written by another "
+                           f"process after {LOCK_WAIT_S:.0f} s") from None
 
 
 @dataclass(eq=False)
