@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -200,16 +201,25 @@ class FolderBusy(RuntimeError):
     """Another process holds the lock of a run or study folder (``folder_lock``)."""
 
 
+_HELD_LOCKS = threading.local()  # per thread: the lock files it holds (folder_lock)
+
+
 @contextmanager
 def folder_lock(parent: Path, name: str, wait_s: float = 0.0) -> Iterator[None]:
     """An exclusive lock on ``parent/.NAME.lock``, held by one process at a time and
     released when it ends (killed or not): two processes resuming one run or study would
     train the same trials twice into the same files. Waits up to ``wait_s`` (for a run
-    still stopping), then raises ``FolderBusy``."""
+    still stopping), then raises ``FolderBusy``. Re-entrant in a thread: the job runner
+    holds a run's lock around ``launch.train``, which takes it again (a second flock of
+    the same file by one process would wait on itself)."""
     import fcntl
 
     parent.mkdir(parents=True, exist_ok=True)
-    lock = parent / f".{name}.lock"
+    lock = (parent / f".{name}.lock").resolve()
+    held = _HELD_LOCKS.__dict__.setdefault("paths", set())
+    if lock in held:
+        yield
+        return
     with open(lock, "a+") as f:
         deadline = time.monotonic() + wait_s
         while True:
@@ -220,7 +230,11 @@ def folder_lock(parent: Path, name: str, wait_s: float = 0.0) -> Iterator[None]:
                 if time.monotonic() >= deadline:
                     raise FolderBusy(f"{lock} is held by another process") from None
                 time.sleep(1.0)
-        yield
+        held.add(lock)
+        try:
+            yield
+        finally:
+            held.discard(lock)
 
 
 def is_run_folder(folder: Path) -> bool:

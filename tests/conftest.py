@@ -55,3 +55,34 @@ def ray_session():
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield ray
     ray.shutdown()
+
+
+@pytest.fixture
+def held_elsewhere():
+    """``held_elsewhere(parent, name)``: a context in which another thread holds
+    ``results.folder_lock(parent, name)``, as a second process running that run or study
+    would (the lock is re-entrant in its own thread only)."""
+    import threading
+    from contextlib import contextmanager
+
+    from rl_scan import results as R
+
+    @contextmanager
+    def hold(parent: Path, name: str):
+        taken, release = threading.Event(), threading.Event()
+
+        def holder():
+            with R.folder_lock(parent, name):
+                taken.set()
+                release.wait(60)
+
+        thread = threading.Thread(target=holder)
+        thread.start()
+        assert taken.wait(10), "the holder thread could not take the lock"
+        try:
+            yield
+        finally:
+            release.set()
+            thread.join()
+
+    return hold

@@ -130,10 +130,10 @@ def test_bad_study_input_fails_before_anything_is_written(tmp_path, capsys, argv
     assert "ray" not in sys.modules or not sys.modules["ray"].is_initialized()
 
 
-def test_a_study_another_process_is_running_is_refused(tmp_path, capsys):
+def test_a_study_another_process_is_running_is_refused(tmp_path, capsys, held_elsewhere):
     """Two processes on one study (a second --resume beside the first) would train the
     same trials twice into the same files: the second is refused before it writes."""
-    with R.folder_lock(tmp_path, "study"):  # held as a running study holds it
+    with held_elsewhere(tmp_path, "study"):  # held as a running study holds it
         code = main(["ablate", "algo", "--preset", "smoke", "--results", str(tmp_path),
                      "--name", "study"])
     assert code == 2
@@ -144,14 +144,40 @@ def test_a_study_another_process_is_running_is_refused(tmp_path, capsys):
         pass
 
 
-def test_a_folder_lock_waits_for_its_holder_then_gives_up(tmp_path):
-    with R.folder_lock(tmp_path, "run"):
+def test_a_folder_lock_waits_for_its_holder_then_gives_up(tmp_path, held_elsewhere):
+    with held_elsewhere(tmp_path, "run"):
         start = time.monotonic()
         with pytest.raises(R.FolderBusy, match=r"\.run\.lock is held"):
             with R.folder_lock(tmp_path, "run", wait_s=1.5):
                 pass
         assert time.monotonic() - start >= 1.5
 
+
+def test_a_folder_lock_is_re_entrant_in_its_thread_only(tmp_path):
+    """The job runner holds a run's lock around ``launch.train``, which takes it again:
+    the same thread goes through, any other holder (thread or process) is refused."""
+    import threading
+
+    refused = []
+
+    def other_thread():
+        try:
+            with R.folder_lock(tmp_path, "run"):
+                refused.append(False)
+        except R.FolderBusy:
+            refused.append(True)
+
+    with R.folder_lock(tmp_path, "run"):
+        with R.folder_lock(tmp_path, "run"):  # nested: no wait on itself
+            thread = threading.Thread(target=other_thread)
+            thread.start()
+            thread.join()
+        thread = threading.Thread(target=other_thread)  # the outer hold still counts
+        thread.start()
+        thread.join()
+    assert refused == [True, True]
+    other_thread()  # released with its outer holder
+    assert refused == [True, True, False]
 
 @pytest.mark.slow
 def test_smoke_study_is_killed_and_resumed_to_completion(tmp_path):

@@ -143,6 +143,20 @@ def test_bad_input_fails_before_ray_work(tmp_path):
     assert list(tmp_path.iterdir()) == []  # nothing half-written
 
 
+
+def test_a_run_another_process_is_writing_is_refused(ray_session, tmp_path, capsys,
+                                                      held_elsewhere):
+    """A second `rl-scan train --resume` beside the first would train the run twice into
+    the same files: it is refused before it writes anything."""
+    with held_elsewhere(tmp_path, "run"):  # as a running `rl-scan train` holds it
+        code = main(["train", "--algo", "ppo", "--preset", "smoke", "--results",
+                     str(tmp_path), "--name", "run"])
+    assert code == 2
+    assert ("name='run' is invalid: allowed a run no other process is running"
+            in capsys.readouterr().err)
+    assert not (tmp_path / "run").exists()
+
+
 def test_resources_are_checked_before_launch():
     check_resources(get_preset("smoke", {"num_env_runners": 1}), available=2)
     with pytest.raises(ConfigError, match="num_env_runners=2 is invalid: allowed at most 1"):

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Sequence
-from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,12 @@ from rl_scan.tuning.driver import (
     train_run,
     trial_resources,
 )
-from rl_scan.tuning.launch import check_output_folder, check_resources, init_ray
+from rl_scan.tuning.launch import (
+    check_output_folder,
+    check_resources,
+    init_ray,
+    lock_output_folder,
+)
 
 
 def split_conditions(text: str, known: Sequence[str]) -> list[str]:
@@ -145,15 +149,7 @@ def ablate(study_name: str, preset_name: str = "quick", *, seeds: int = 3, trial
         base.for_trial(study.name, params).algorithm_config()
     cpus = init_ray(address)
     check_resources(preset, cpus)
-    # One process per study (two would train the same trials into the same files), locked
-    # once the input is checked so that bad input leaves nothing behind.
-    with ExitStack() as held:
-        try:
-            held.enter_context(R.folder_lock(folder.parent, folder.name))
-        except R.FolderBusy:
-            fail("name", name, f"a study no other process is running ({folder.parent}/."
-                               f"{folder.name}.lock is held: wait for that run or stop it)")
-
+    with lock_output_folder(folder, "study"):
         import optuna
         from ray import tune
         num_samples = grid_size or trials

@@ -10,6 +10,8 @@ an interrupted run from its last checkpoint.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +46,22 @@ def check_output_folder(folder: Path, marker: str, what: str, resume: bool) -> N
                           "it or choose another --name")
     if resume and not (folder / marker).is_file():
         raise ConfigError(f"--resume: no {what} to resume in {str(folder)!r}")
+
+
+@contextmanager
+def lock_output_folder(folder: Path, what: str) -> Iterator[None]:
+    """Hold the run/study folder's lock (``results.folder_lock``) for the whole launch:
+    two processes on one folder (a second ``--resume`` beside the first) would train the
+    same trials twice into the same files. Taken once the input is checked, so bad input
+    leaves nothing behind; a folder another process holds is refused at once."""
+    with ExitStack() as held:
+        try:
+            held.enter_context(R.folder_lock(folder.parent, folder.name))
+        except R.FolderBusy:
+            fail("name", folder.name, f"a {what} no other process is running ({folder.parent}"
+                                      f"/.{folder.name}.lock is held: wait for that {what} "
+                                      "or stop it)")
+        yield
 
 
 def check_resources(preset: TrainPreset, available: float,
@@ -155,8 +173,15 @@ def train_spec(spec: RunSpec, *, results_dir: str | Path = "results", name: str 
     spec.algorithm_config()  # every setting checked before Ray starts
     check_resources(preset, init_ray(address))
 
+    with lock_output_folder(run_dir, "run"):
+        return _fit_run(spec, run_dir, name, resume, console)
+
+
+def _fit_run(spec: RunSpec, run_dir: Path, name: str, resume: bool, console) -> Path:
+    """``train_spec``'s Tune part, under the run folder's lock."""
     from ray import tune
 
+    preset, env = spec.preset, spec.env
     if not resume:
         run_dir.mkdir(parents=True)
         R.write_yaml(run_dir / R.RUN_FILE, spec.metadata())
