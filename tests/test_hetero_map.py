@@ -93,14 +93,58 @@ def test_team_studies_trained_at_map_points_are_marked_and_tabled(tmp_path, monk
     _team_study(results, "team-default", {},  # the default EnvConfig is the point at 0 s
                 {"2,2": [0.6, 0.7], "0,4": [0.9, 0.8]})
     _team_study(results, "team-comm3", {"comm_scheme": 3}, {"2,2": [0.9], "0,4": [0.1]})
+    # at the 20 s point, without a 4 wheeled team of its own (team-20s has one: the same env)
+    _team_study(results, "team-20s-b", hetero.point_env(short), {"2,2": [0.65], "0,4": [0.4]})
+    # 4 wheeled robots with another sensor: a different env for them, never borrowed
+    sphere = {**short, "wheeled_sensor": "sphere"}
+    _team_study(results, "team-sphere", hetero.point_env(sphere), {"4,0": [0.99, 0.99, 0.99]})
     out = build_report(results, tmp_path / "report", reference=False)
     md = (out / "report.md").read_text()
     # mixed 85.0 vs the better homogeneous team (4 quads, 72.5): +12.5, both mixed runs
     # beat both quad runs: P = 1
     assert ("| team-20s | fan, 0.1, 3.5, 20.0 | 400,000 | 0,4: 2, 2,2: 2, 4,0: 2 | 85.0 | "
             "72.5 (0,4) | +12.5 | 1.00 [1.00, 1.00] |") in md
-    assert "| team-default | fan, 0.1, 3.5, 0.0 | 400,000 | 0,4: 2, 2,2: 2 | 65.0 | 85.0 " in md
+    # the default point's 4 wheeled robots are team-20s's: they do not read the quads' flight
+    # time, and 4 wheeled robots with sphere sensors (team-sphere) are another env
+    assert ("| team-default | fan, 0.1, 3.5, 0.0 | 400,000 | 0,4: 2, 2,2: 2, 4,0: 2 (from "
+            "team-20s) | 65.0 | 85.0 (0,4) |") in md
+    # a borrowed team can be the best homogeneous one: 65.0 vs 4 wheeled 55.0
+    assert ("| team-20s-b | fan, 0.1, 3.5, 20.0 | 400,000 | 0,4: 1, 2,2: 1, 4,0: 2 (from "
+            "team-20s) | 65.0 | 55.0 (4,0) | +10.0 | 1.00 [1.00, 1.00] |") in md
     assert "team-comm3 | fan" not in md  # another comm scheme is no point of this map
     shutil.copy(results / "map" / R.HETERO_MAP, out)  # the committed example's layout
     again = (build_report(out, tmp_path / "again", reference=False) / "report.md").read_text()
     assert "| team-20s | fan, 0.1, 3.5, 20.0 | 400,000 |" in again  # rebuilt from runs.json
+
+
+@pytest.mark.parametrize("team, other_kind", [
+    ((4, 0), {"quad": {"max_speed": 0.2, "sensor_range": 2.0}, "quad_flight_time": 100.0}),
+    ((0, 4), {"wheeled": {"elevations": [-60.0, 0.0, 60.0], "sensor_range": 3.0}}),
+])
+def test_a_homogeneous_team_never_reads_the_other_kinds_settings(team, other_kind):
+    """Why a trained point may borrow a homogeneous team from another point
+    (``UNREAD_BY``): step by step, the same observations and rewards."""
+    import numpy as np
+
+    from rl_scan.config import deep_merge
+    from rl_scan.envs.core import ScanCore
+    from rl_scan.envs.heuristics import GreedyTeam
+    from rl_scan.envs.sim.env_config import make_env_config
+    from rl_scan.reports.hetero_map import UNREAD_BY, env_key
+
+    base = {"team": {"wheeled": team[0], "quad": team[1]}, "max_steps": 60}
+    cores = [ScanCore(make_env_config(deep_merge(base, extra))) for extra in ({}, other_kind)]
+    condition = f"{team[0]},{team[1]}"
+    assert env_key(deep_merge(base, other_kind), UNREAD_BY[condition]) == env_key(
+        base, UNREAD_BY[condition])
+    obs = [core.reset(seed=3, options={"scenario": "train:4"}) for core in cores]
+    greedy = GreedyTeam(cores[0])
+    for _ in range(60):
+        actions = greedy.act(obs[0])
+        steps = [core.step(actions) for core in cores]
+        obs = [step[0] for step in steps]
+        assert obs[0].keys() == obs[1].keys()
+        for agent in obs[0]:
+            np.testing.assert_array_equal(obs[0][agent], obs[1][agent])
+        assert steps[0][1] == steps[1][1]
+    assert cores[0].world.n_scanned == cores[1].world.n_scanned > 0
