@@ -100,7 +100,8 @@ def borrowed_team(runs: Collection, group: str, condition: str) -> str | None:
         if (r.condition == condition and r.evals and r.algo in algos and r.group != group
                 and runs.kinds.get(r.group) == "study:team"):
             counts[r.group] += 1
-    matching = [g for g in sorted(counts) if key(g) == key(group)]
+    own = key(group)
+    matching = [g for g in sorted(counts) if key(g) == own]
     return max(matching, key=counts.get) if matching else None
 
 
