@@ -123,20 +123,21 @@ def test_team_studies_trained_at_map_points_are_marked_and_tabled(tmp_path, monk
 ])
 def test_a_homogeneous_team_never_reads_the_other_kinds_settings(team, other_kind):
     """Why a trained point may borrow a homogeneous team from another point
-    (``UNREAD_BY``): step by step, the same observations and rewards."""
+    (``borrow.UNREAD_WITHOUT``): step by step, the same observations and rewards."""
     import numpy as np
 
     from rl_scan.config import deep_merge
     from rl_scan.envs.core import ScanCore
     from rl_scan.envs.heuristics import GreedyTeam
     from rl_scan.envs.sim.env_config import make_env_config
-    from rl_scan.reports.hetero_map import UNREAD_BY, env_key
+    from rl_scan.reports.borrow import trial_key
 
     base = {"team": {"wheeled": team[0], "quad": team[1]}, "max_steps": 60}
     cores = [ScanCore(make_env_config(deep_merge(base, extra))) for extra in ({}, other_kind)]
     condition = f"{team[0]},{team[1]}"
-    assert env_key(deep_merge(base, other_kind), UNREAD_BY[condition]) == env_key(
-        base, UNREAD_BY[condition])
+    assert trial_key("study:team", condition, other_kind) == trial_key(
+        "study:team", condition, {})
+    assert trial_key("study:team", "2,2", other_kind) != trial_key("study:team", "2,2", {})
     obs = [core.reset(seed=3, options={"scenario": "train:4"}) for core in cores]
     greedy = GreedyTeam(cores[0])
     for _ in range(60):

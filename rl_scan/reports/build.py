@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from rl_scan import results as R
+from rl_scan.reports.borrow import borrow_runs, borrowed_lines
 from rl_scan.reports.claims import improvement_lines
 from rl_scan.reports.collect import (
     MARL_EVAL_FILE,
@@ -182,6 +183,8 @@ def marl_eval_json(runs: list[RunRecord]) -> dict[str, Any]:
     out: dict[str, Any] = {"rl-scan": {}}
     counters: dict[tuple, int] = defaultdict(int)
     for r in runs:
+        if r.borrowed_from:  # exported once, as its own study's
+            continue
         task = r.scenario or "unknown"
         algo = f"{r.group}:{r.condition}"
         key = (task, algo)
@@ -312,6 +315,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
     out = Path(out_dir).resolve() if out_dir else results_dir / "report"
     data: Collection = collect(results_dir)
     skipped = sum(add_runs(data, source) for source in add)  # refused before writing
+    borrowed = len(borrow_runs(data))
     (out / "figures").mkdir(parents=True, exist_ok=True)
     maps = hetero_map_lines(results_dir, out / "figures", data)
     if not data.runs and not maps:
@@ -321,8 +325,10 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
     shown = _shown(results_dir)
     sources = "".join(f", `{_shown(Path(a).resolve())}`" for a in add)
     md = [f"# rl-scan report: {results_dir.name}", "",
-          f"{len(data.runs)} runs read from `{shown}`{sources}"
+          f"{len(data.runs) - borrowed} runs read from `{shown}`{sources}"
           + (f" ({skipped} added runs replaced by their namesakes here)" if skipped else "")
+          + (f", {borrowed} of them shown again as a condition of another study that did "
+             "not train it (\"Borrowed runs\")" if borrowed else "")
           + ". Scores are final-checkpoint "
           "scores (each run's last evaluation); bands are ± 1 sample std (light) and the 95 % t "
           "interval of the mean (dark, n - 1 degrees of freedom) over seeds. P(X > Y) is "
@@ -346,8 +352,9 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         md += [f"## {group}", ""]
         planned = data.planned.get(group)
         missing = [r for r in runs if not r.evals]
-        if planned and len(runs) < planned:
-            md.append(f"**Partial:** {len(runs)} of {planned} planned runs have started.")
+        own = sum(not r.borrowed_from for r in runs)
+        if planned and own < planned:
+            md.append(f"**Partial:** {own} of {planned} planned runs have started.")
         if missing:
             md.append(f"**Missing evaluations:** {len(missing)} run(s) have none yet: "
                       + ", ".join(f"`{r.path.name}`" for r in missing[:10]))
@@ -359,6 +366,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         md += ["", f"![{group}](figures/{fig.name})", ""]
         rows = condition_rows(runs)
         md += _table(rows, spec)
+        md += borrowed_lines(runs)
         md += best_checkpoint_table(runs)
         md += critic_lines(runs)
         md += meta_lines(runs)
@@ -368,7 +376,8 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         if data.rebuilt_from != MARL_EVAL_FILE:  # which keeps no wall times
             md += ["", "| run | condition, seed | env steps | wall time | env steps/s (end to "
                    "end) |", "|---|---|---|---|---|"]
-            md += [f"| {r.path.name} | {r.condition}, {r.seed} | {r.env_steps:,} | "
+            md += [f"| {r.path.name}{f' ({r.borrowed_from[0]})' if r.borrowed_from else ''} | "
+                   f"{r.condition}, {r.seed} | {r.env_steps:,} | "
                    f"{_fmt(r.time_total_s, False)} s | {_fmt(r.env_steps_per_s, False)} |"
                    for r in sorted(runs, key=lambda r: (r.condition, r.seed))]
         md.append("")

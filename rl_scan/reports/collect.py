@@ -43,6 +43,9 @@ class RunRecord:
     meta: list[dict[str, Any]] = field(default_factory=list)
     """A MetaPOCA run's META_FILE entries (one per meta-iteration), kept in runs.json so a
     rebuilt report still tables the adaptation gain."""
+    borrowed_from: tuple[str, str] | None = None
+    """(group, condition) this run was trained as, if another study's trial of the same
+    config stands in for one its group did not train (``reports.borrow``; never saved)."""
 
     @property
     def curve(self) -> list[tuple[int, float]]:
@@ -81,7 +84,9 @@ class RunRecord:
         return self.env_steps / self.time_total_s if self.time_total_s else math.nan
 
     def to_json(self) -> dict[str, Any]:
-        return {**asdict(self), "path": str(self.path)}
+        data = {**asdict(self), "path": str(self.path)}
+        data.pop("borrowed_from")  # derived on every build (reports.borrow)
+        return data
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> RunRecord:
@@ -270,7 +275,8 @@ def _kind_from_name(group: str) -> str:
 
 def runs_file(data: Collection) -> dict[str, Any]:
     """REPORT_RUNS_FILE's content: every run as read, and each group's plan and kind."""
-    return {"runs": [r.to_json() for r in data.runs], "planned": data.planned,
+    return {"runs": [r.to_json() for r in data.runs if not r.borrowed_from],
+            "planned": data.planned,
             "kinds": data.kinds, "envs": data.envs,
             "reports": {group: asdict(spec) for group, spec in data.reports.items()}}
 

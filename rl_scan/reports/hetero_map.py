@@ -61,69 +61,46 @@ def map_grid(data: dict[str, Any]) -> tuple[list[str], list[str], np.ndarray]:
     return row_labels, [_label(COLUMN_AXIS, c) for c in cols], values
 
 
-UNREAD_BY = {"4,0": ("quad", "quad_flight_time"), "0,4": ("wheeled",)}
-"""EnvConfig fields a homogeneous team never reads (it has no robot of the other kind):
-4 wheeled robots play the same episodes whatever the quads' settings, and 4 quads
-whatever the wheeled robots' (``tests/test_hetero_map.py`` checks it step by step)."""
-
-
-def env_key(env: dict[str, Any], drop: tuple[str, ...] = ("scenario",)) -> str:
-    """An EnvConfig's settings but its team and ``drop``: equal keys = the same map point
-    (by default: any scenario, the map's greedy scenes are not the trained study's)."""
+def env_key(env: dict[str, Any]) -> str:
+    """An EnvConfig's settings but its team and scenario: equal keys = the same map point
+    (the map's greedy scenes are not the trained study's)."""
     from rl_scan.config import to_dict
     from rl_scan.envs.sim.env_config import make_env_config
 
     settings = to_dict(make_env_config(env))
-    for key in ("team", *drop):
+    for key in ("team", "scenario"):
         settings.pop(key)
     return json.dumps(settings, sort_keys=True)
 
 
-def _team_finals(runs: Collection, group: str) -> dict[str, list[float]]:
-    finals = defaultdict(list)
+def _team_finals(runs: Collection, group: str) -> tuple[dict[str, list[float]], dict[str, str]]:
+    """Final coverages per team of a team study, and the teams it borrowed (from which
+    study: ``reports.borrow``)."""
+    finals, borrowed = defaultdict(list), {}
     for r in runs.runs:
         if r.group == group and r.evals:
             finals[r.condition].append(r.final_coverage)
-    return finals
-
-
-def borrowed_team(runs: Collection, group: str, condition: str) -> str | None:
-    """Another team study that trained the homogeneous ``condition`` (same algorithm) at
-    an env that team cannot tell from ``group``'s (``UNREAD_BY``), the one with the most
-    such runs: a study need not train again a team its point's settings do not touch."""
-    def key(g: str) -> str:
-        return env_key(runs.envs.get(g, {}), drop=UNREAD_BY[condition])
-
-    algos = {r.algo for r in runs.runs if r.group == group}
-    counts = defaultdict(int)
-    for r in runs.runs:
-        if (r.condition == condition and r.evals and r.algo in algos and r.group != group
-                and runs.kinds.get(r.group) == "study:team"):
-            counts[r.group] += 1
-    own = key(group)
-    matching = [g for g in sorted(counts) if key(g) == own]
-    return max(matching, key=counts.get) if matching else None
+            if r.borrowed_from:
+                borrowed[r.condition] = r.borrowed_from[0]
+    return finals, borrowed
 
 
 def trained_points(data: dict[str, Any], runs: Collection) -> list[dict[str, Any]]:
     """The team studies run at a point of this map: per study its point, the mean final
     coverage of the mixed and of the best homogeneous team (a homogeneous team it did not
-    train is borrowed, ``borrowed_team``), and P(mixed > it)."""
+    train is borrowed, ``reports.borrow``), and P(mixed > it)."""
     points = {env_key(p["env"]): p for p in data["points"] if "env" in p}
     out = []
     for group, kind in sorted(runs.kinds.items()):
         point = points.get(env_key(runs.envs.get(group, {}))) if kind == "study:team" else None
         if point is None:
             continue
-        finals, borrowed = _team_finals(runs, group), {}
-        for c in HOMOGENEOUS:
-            if c not in finals and (other := borrowed_team(runs, group, c)):
-                finals[c], borrowed[c] = _team_finals(runs, other)[c], other
+        finals, borrowed = _team_finals(runs, group)
         homo = {c: float(np.mean(finals[c])) for c in HOMOGENEOUS if c in finals}
         if MIXED not in finals or not homo:
             continue
         steps = max(int(r.evals[-1]["env_steps"]) for r in runs.runs
-                    if r.group == group and r.evals)
+                    if r.group == group and r.evals and not r.borrowed_from)
         best = max(homo, key=homo.get)
         out.append({"group": group, "params": point["params"], "greedy": point["value"],
                     "env_steps": steps, "mixed": float(np.mean(finals[MIXED])),
