@@ -82,15 +82,15 @@ def borrow_runs(data: Collection) -> list[RunRecord]:
     added = []
     for group, runs in sorted(by_group.items()):
         kind = data.kinds.get(group, "")
-        study = STUDIES.get(kind.removeprefix("study:"))
-        if not kind.startswith("study:") or study is None or _schedule(runs) is None:
+        study = STUDIES.get(kind.removeprefix("study:")) if kind.startswith("study:") else None
+        if study is None or _schedule(runs) is None:
             continue
         own = {r.condition for r in runs}
-        for condition in study.conditions:
+        for condition in (c for c in study.conditions if c not in own):
             key = trial_key(kind, condition, data.envs.get(group, {}))
             sources = {g: rs for g, rs in offers.get(key, {}).items()
                        if g != group and same_schedule(rs, runs)}
-            if condition in own or not sources:
+            if not sources:
                 continue
             source = max(sorted(sources), key=lambda g: len(sources[g]))
             added += [replace(r, group=group, condition=condition,
