@@ -38,6 +38,10 @@ class ReportSpec:
     claims: dict[str, str] = field(default_factory=dict)
     """The paper's claim behind a comparison, keyed ``"X > Y"`` (a comparison without one is
     ours); the report gives each a verdict from P(X > Y) (``reports/claims.py``)."""
+    speed_ratio: tuple[str, str, float] | None = None
+    """(X, Y, goal) for runs that adapt pre-trained weights: the report adds each condition's
+    coverage before adaptation and area under the curve, and X's mean censored env steps to
+    ``metrics.SPEED_AT`` over Y's, against the goal that it be at most ``goal``."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +146,7 @@ META_MRSS_REPORT = ReportSpec(
     comparisons=(("meta-mrss", "dr"), ("meta-mrss", "transfer"), ("meta-mrss", "poca")),
     paper_column="paper success",
     paper={m: f"{v} %" for m, v in PAPER_META_SUCCESS.items()},
+    speed_ratio=("meta-mrss", "poca", 0.30),  # issue 16's goal: 80 % in <= 30 % of the steps
     claims={f"meta-mrss > {m}": f"meta-MRSS scans held-out scenes better than {name} "
                                 f"(success {PAPER_META_SUCCESS['meta-mrss']} vs "
                                 f"{PAPER_META_SUCCESS[m]} %, Sec. IV-A)"

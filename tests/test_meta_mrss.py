@@ -14,10 +14,10 @@ import pytest
 from rl_scan import results as R
 from rl_scan.cli import main
 from rl_scan.config import ConfigError
+from rl_scan.metrics import curve_metrics
 from rl_scan.tuning.meta_mrss import (
     PROTOCOLS,
     check_jobs,
-    curve_metrics,
     format_table,
     parse_tests,
     plan_jobs,

@@ -374,3 +374,38 @@ def test_meta_mrss_parts_keep_every_scene_of_a_method_and_seed(tmp_path):
     assert add_runs(data, tmp_path / "earlier") == 1
     assert sorted((r.scenario, r.final_coverage) for r in data.runs) == [
         ("test:0", 0.9), ("test:1", 0.3)]
+
+
+def test_a_meta_mrss_report_tables_zero_shot_area_and_the_speed_ratio_by_hand(tmp_path):
+    """Adaptation figures of the meta-MRSS protocol, hand-computed: coverage at 0 env steps,
+    the area under the curve (held before the first evaluation) and meta-MRSS's censored
+    env steps to 80 % over scratch POCA's against the 0.30 goal; a rebuild from runs.json
+    written before the ratio existed still shows it."""
+    curves = {  # (method, seed): [(env steps, coverage)]
+        ("meta-mrss", 0): [(0, 0.7), (4000, 0.82), (8000, 0.85), (12000, 0.9)],  # 80 % at 4k
+        ("meta-mrss", 1): [(0, 0.5), (4000, 0.6), (8000, 0.81), (12000, 0.83)],  # at 8k
+        ("poca", 0): [(4000, 0.2), (8000, 0.5), (12000, 0.7)],  # never: censored at 12k
+        ("poca", 1): [(4000, 0.3), (8000, 0.82), (12000, 0.85)]}  # at 8k
+    exp = tmp_path / "mm"
+    for (method, seed), curve in curves.items():
+        run = exp / R.ADAPT_DIR / f"{method}_test0_s{seed}"
+        run.mkdir(parents=True)
+        (run / R.RUN_FILE).write_text(yaml.safe_dump(
+            {"algo": "poca", "seed": seed, "env_config": {"scenario": "test:0"}}))
+        (run / R.EVAL_FILE).write_text(json.dumps(
+            [{"training_iteration": i, "env_steps": s, "coverage": c}
+             for i, (s, c) in enumerate(curve)]))
+    out = build_report(tmp_path, tmp_path / "report", reference=False)
+    md = (out / "report.md").read_text()
+    # areas: meta (3040 + 3340 + 3500) / 12000 and (2200 + 2820 + 3280) / 12000 = 82.3, 69.2;
+    # poca (800 + 1400 + 2400) / 12000 and (1200 + 2240 + 3340) / 12000 = 38.3, 56.5
+    assert "| meta-mrss | 60.0 ± 14.1 | 75.8 ± 9.3 |" in md
+    assert "| poca | - | 47.4 ± 12.8 |" in md
+    assert "meta-mrss / poca env steps to 80% (the censored means above): **0.60**, the goal " \
+           "is at most 0.30: not met." in md  # (4k + 8k) / 2 over (12k + 8k) / 2
+    runs_json = out / R.REPORT_RUNS_FILE
+    data = json.loads(runs_json.read_text())
+    del data["reports"]["mm/adapt"]["speed_ratio"]  # a report from before the field
+    runs_json.write_text(json.dumps(data))
+    again = (build_report(out, tmp_path / "again", reference=False) / "report.md").read_text()
+    assert "**0.60**, the goal is at most 0.30: not met." in again

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from rl_scan import results as R
+from rl_scan.metrics import SPEED_AT, curve_metrics
 from rl_scan.reports.borrow import borrow_runs, borrowed_lines
 from rl_scan.reports.claims import improvement_lines
 from rl_scan.reports.collect import (
@@ -54,7 +55,6 @@ from rl_scan.studies import ReportSpec
 
 RULE = (f"A condition **converged** if the mean over seeds of its final evaluation coverage "
         f"is at least {CONVERGED:.0%}; otherwise it **failed**.")
-SPEED_AT = 0.80
 SPEED = (f"**Learning / adaptation speed** is defined up front as the env steps of the first "
          f"of two consecutive evaluations of a run whose mean coverage reaches {SPEED_AT:.0%} "
          "(one noisy evaluation does not count). A run that never gets there counts as the "
@@ -151,6 +151,44 @@ def _table(rows: list[dict[str, Any]], spec: ReportSpec) -> list[str]:
             cells.append(spec.paper.get(r["condition"], "(not in the paper)"))
         lines.append("| " + " | ".join(cells) + " |")
     return lines
+
+
+def adaptation_lines(runs: list[RunRecord], rows: list[dict[str, Any]],
+                     spec: ReportSpec) -> list[str]:
+    """For runs that adapt pre-trained weights (``spec.speed_ratio``): per condition the
+    coverage before adaptation (the evaluation at 0 env steps) and the area under the
+    coverage curve (``metrics.curve_metrics``), then the ratio of the spec's two conditions'
+    censored env steps to SPEED_AT (the condition table's figures) against its goal."""
+    if spec.speed_ratio is None:
+        return []
+    by_cond: dict[str, list[dict[str, float]]] = defaultdict(list)
+    for r in runs:
+        if r.evals:
+            by_cond[r.condition].append(curve_metrics(r.evals, r.evals[-1]["env_steps"]))
+    if not by_cond:
+        return []
+    lines = ["", "Adaptation (mean ± sample std over runs): coverage of the pre-trained "
+             "weights before adaptation (the evaluation at 0 env steps; a dash for scratch "
+             "training, which has none) and the area under the coverage curve over the "
+             "adaptation budget.", "",
+             "| condition | coverage % before adaptation | area under the curve % |",
+             "|---|---|---|"]
+    lines += [f"| {cond} | {_pm([m['start_coverage'] for m in ms])} | "
+              f"{_pm([m['auc'] for m in ms])} |" for cond, ms in sorted(by_cond.items())]
+    x, y, goal = spec.speed_ratio
+    speed = {r["condition"]: r["speed"] for r in rows}
+    if not math.isnan(speed.get(x, math.nan)) and speed.get(y):
+        ratio = speed[x] / speed[y]
+        lines += ["", f"{x} / {y} env steps to {SPEED_AT:.0%} (the censored means above): "
+                  f"**{ratio:.2f}**, the goal is at most {goal:.2f}: "
+                  f"{'met' if ratio <= goal else 'not met'}."]
+    return lines
+
+
+def _pm(values: list[float]) -> str:
+    """Mean ± sample std in percent of the non-nan values, a dash if none."""
+    mean, std = mean_std(values)
+    return "-" if math.isnan(mean) else f"{_fmt(mean)} ± {_fmt(std)}"
 
 
 def best_checkpoint_table(runs: list[RunRecord]) -> list[str]:
@@ -367,6 +405,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None,
         rows = condition_rows(runs)
         md += _table(rows, spec)
         md += borrowed_lines(runs)
+        md += adaptation_lines(runs, rows, spec)
         md += best_checkpoint_table(runs)
         md += critic_lines(runs)
         md += meta_lines(runs)

@@ -157,14 +157,13 @@ def _place(folder: Path, meta: dict[str, Any], out: Collection) -> tuple[str, st
 
 def _specs(out: Collection) -> None:
     """Each group's ReportSpec: the one kept by the report this was rebuilt from (with
-    the registry's claims if it predates them), else the one of its kind."""
+    the registry's claims and speed ratio if it predates them), else the one of its kind."""
     for group, kind in out.kinds.items():
         known = _spec_of_kind(out, group, kind)
         kept = out.reports.get(group)
-        if kept is None:
-            out.reports[group] = known
-        elif not kept.claims:
-            out.reports[group] = replace(kept, claims=known.claims)
+        out.reports[group] = known if kept is None else replace(
+            kept, claims=kept.claims or known.claims,
+            speed_ratio=kept.speed_ratio or known.speed_ratio)
 
 
 def _spec_of_kind(out: Collection, group: str, kind: str) -> ReportSpec:
@@ -196,8 +195,9 @@ def collect(root: str | Path) -> Collection:
         out.runs = [RunRecord.from_json(r) for r in data.get("runs", [])]
         out.planned, out.kinds = data.get("planned", {}), data.get("kinds", {})
         out.envs = data.get("envs", {})
-        out.reports = {group: ReportSpec(**{**spec, "comparisons": tuple(
-                           tuple(p) for p in spec["comparisons"])})
+        out.reports = {group: ReportSpec(**{
+                           **spec, "comparisons": tuple(tuple(p) for p in spec["comparisons"]),
+                           "speed_ratio": tuple(spec.get("speed_ratio") or ()) or None})
                        for group, spec in data.get("reports", {}).items()}
         out.rebuilt_from = R.REPORT_RUNS_FILE
     elif not out.runs and (root / MARL_EVAL_FILE).is_file():

@@ -43,7 +43,7 @@ from rl_scan.algorithms.registry import get_algorithm
 from rl_scan.config import ConfigError, check_range, fail
 from rl_scan.envs.sim.scenarios import N_TEST
 from rl_scan.reports.stats import sample_std
-from rl_scan.studies import PAPER_META_SUCCESS
+from rl_scan.studies import META_MRSS_REPORT, PAPER_META_SUCCESS
 from rl_scan.tuning.driver import make_run_spec, required_cpus
 from rl_scan.tuning.jobs import Job, run_jobs
 from rl_scan.tuning.launch import check_resources, init_ray, largest_per_node, scenario_label
@@ -53,7 +53,6 @@ METHODS = ("meta-mrss", "dr", "transfer", "poca")
 # method -> (algorithm, pre-training scenario); "poca" has no pre-training
 PRETRAIN = {"meta-mrss": ("meta-poca", "train:*"), "dr": ("poca", "train:*"),
             "transfer": ("poca", "train:0")}
-TARGET = 0.8
 
 
 def parse_tests(text: str) -> list[str]:
@@ -228,30 +227,6 @@ def run_protocol(results_dir: str | Path, name: str, *, preset: str = "quick",
     return summary
 
 
-def curve_metrics(entries: list[dict[str, Any]], budget: float,
-                  target: float = TARGET) -> dict[str, float]:
-    """One adaptation curve's figures, defined up front (module doc): final coverage,
-    env steps to ``target`` (the first of two consecutive evaluations at or above it;
-    ``budget`` if never: censored, with ``reached`` 0), the area under the coverage curve
-    over [0, budget] as a fraction (a held value before the first and after the last
-    evaluation), final success, and the start weights' coverage (evaluation 0, else nan)."""
-    if not entries:
-        return {"final_coverage": math.nan, "steps_to_80": math.nan, "reached_80": math.nan,
-                "auc": math.nan, "success": math.nan, "start_coverage": math.nan}
-    steps = [float(e["env_steps"]) for e in entries]
-    cover = [float(e.get(M.COVERAGE, 0.0)) for e in entries]
-    first = M.steps_to_reach(list(zip(steps, cover)), target)
-    xs = [0.0, *steps, max(budget, steps[-1])]
-    ys = [cover[0], *cover, cover[-1]]
-    auc = float(np.trapezoid(ys, xs) / xs[-1]) if xs[-1] > 0 else math.nan
-    start = cover[0] if steps[0] == 0 else math.nan
-    return {"final_coverage": cover[-1],
-            "steps_to_80": float(first) if first is not None else float(budget),
-            "reached_80": float(first is not None), "auc": auc,
-            "success": float(entries[-1].get(M.SUCCESS, math.nan)),
-            "start_coverage": float(start)}
-
-
 def summarize(root: Path, methods: list[str], tests: list[str], seeds: int,
               budget: float, first_seed: int = 0) -> dict:
     """Per method: each seed's mean over the test scenes, then mean and sample std over
@@ -281,7 +256,7 @@ def summarize(root: Path, methods: list[str], tests: list[str], seeds: int,
             rows = []
             for test in (t for t, s in common if s == seed):
                 entries = curves[method, test, seed]
-                rows.append(curve_metrics(entries, budget))
+                rows.append(M.curve_metrics(entries, budget))
                 runs[f"{method}_{scenario_label(test)}_s{seed}"] = {
                     "curve": [(e["env_steps"], e[M.COVERAGE]) for e in entries], **rows[-1]}
             if rows:
@@ -337,12 +312,13 @@ def format_table(summary: dict) -> str:
                      f"({'-' if math.isnan(reach) else f'{100 * reach:.0f} %'}) | "
                      f"{pm(s, 'auc', 100)} | "
                      f"{pm(s, 'success', 100)} | {PAPER_META_SUCCESS.get(method, '-')} |")
-    meta, poca = summary["methods"].get("meta-mrss"), summary["methods"].get("poca")
+    x, y, goal = META_MRSS_REPORT.speed_ratio
+    meta, poca = summary["methods"].get(x), summary["methods"].get(y)
     if meta and poca:
         a, b = meta["steps_to_80"]["mean"], poca["steps_to_80"]["mean"]
         ratio = "-" if math.isnan(a) or math.isnan(b) else f"{a / b:.2f}"
         lines.append(f"\nmeta-MRSS / standard POCA env steps to 80 % (censored): {ratio} "
-                     "(goal <= 0.30)")
+                     f"(goal <= {goal:.2f})")
     meta_training = summary.get("meta_training")
     if meta_training:
         gain, norm = meta_training["gain"], meta_training["delta_norm"]
