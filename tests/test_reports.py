@@ -261,8 +261,8 @@ def test_critic_diagnostics_are_read_from_progress_and_tabled(tmp_path):
 
 
 def test_meta_training_diagnostics_are_tabled_per_run(tmp_path):
-    from rl_scan.reports.build import meta_lines
     from rl_scan.reports.collect import RunRecord
+    from rl_scan.reports.tables import meta_lines
 
     run = tmp_path / "meta-mrss_s0"
     run.mkdir()
