@@ -86,6 +86,21 @@ META_TERM_RESULTS = "meta/maml_term"  # MetaPOCA: learner results at theta + del
 META_FILE = "meta_diagnostics.json"  # in a MetaPOCA run folder: one entry per meta-iteration
 
 
+PLACEMENT_SETTINGS = ("num_env_runners", "learner_cpus", "custom_resources",
+                      "evaluation_interval", "evaluation_episodes", "checkpoint_frequency")
+"""Preset fields of a RUN_FILE that say where a run trains and how often it is evaluated
+and saved, not what it learns."""
+
+
+def learning_settings(run_meta: dict[str, Any]) -> dict[str, Any]:
+    """A RUN_FILE's preset values that shape what the run learns (budget, batch, minibatch,
+    epochs, lr, envs per runner, schedules, sampler, the preset's env overrides): all but
+    PLACEMENT_SETTINGS. Two runs of one algorithm and EnvConfig with equal ones are the same
+    trial (reports/borrow.py)."""
+    return {k: v for k, v in (run_meta.get("preset_config") or {}).items()
+            if k not in PLACEMENT_SETTINGS}
+
+
 def scan_key(metric: str) -> str:
     """The result key of an episode metric: 'coverage' -> 'scan/coverage'."""
     return SCAN_PREFIX + metric

@@ -1,5 +1,5 @@
 """A study's condition taken from another study that trained the same trial (reports.borrow):
-borrowed only when algorithm, settings, EnvConfig and evaluation schedule agree, compared
+borrowed only when algorithm, settings, preset, EnvConfig and evaluation schedule agree, compared
 like an own condition, marked, and never written to the report's runs file."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from rl_scan.reports.build import build_report
 
 
 def _study(root, name: str, kind: str, finals: dict[str, list[float]], env: dict | None = None,
-           last_step: int = 1_000_000, episodes: int = 10):
+           last_step: int = 1_000_000, episodes: int = 10, lr: float = 3e-4):
     """A study folder as ``rl-scan ablate KIND --name NAME`` writes it."""
     study = root / name
     study.mkdir(parents=True)
@@ -28,7 +28,8 @@ def _study(root, name: str, kind: str, finals: dict[str, list[float]], env: dict
             (run / R.RUN_FILE).write_text(yaml.safe_dump(
                 {"algo": cond.split("/")[0], "seed": seed,
                  "params": {"condition": cond, "seed": seed},
-                 "preset_config": {"evaluation_episodes": episodes},
+                 "preset_config": {"evaluation_episodes": episodes, "lr": lr,
+                                   "learner_cpus": 1 + seed % 2},  # placement: not compared
                  "env_config": {"scenario": "ablation"}}))
             (run / R.EVAL_FILE).write_text(json.dumps([
                 {"training_iteration": 10, "env_steps": last_step // 2, "coverage": final / 2},
@@ -53,12 +54,14 @@ def test_a_reward_study_borrows_its_individual_reward_runs_from_an_algo_study(tm
     results = tmp_path / "results"
     _study(results, "reward-1M", "reward", {"poca/team": [0.9, 0.8], "ppo/team": [0.6, 0.7]})
     _study(results, "algo-1M", "algo", {"poca": [0.7, 0.75, 0.65], "ppo": [0.5, 0.95, 0.55]})
-    # the same trials with another comm scheme, and with half the budget: never borrowed
+    # the same trials with another comm scheme, half the budget or another lr: never borrowed
+    # (each has more poca runs than algo-1M, so it would be chosen if it were the same trial)
     _study(results, "algo-comm3", "algo", {"poca": [0.1] * 4}, env={"comm_scheme": 3})
     _study(results, "algo-500k", "algo", {"poca": [0.2] * 4}, last_step=500_000)
+    _study(results, "algo-lr1e-3", "algo", {"poca": [0.3] * 4}, lr=1e-3)
     out = build_report(results, tmp_path / "report", reference=False)
     md = (out / "report.md").read_text()
-    assert "18 runs read from" in md and "6 of them shown again" in md
+    assert "22 runs read from" in md and "6 of them shown again" in md
     reward = md[md.index("## reward-1M"):]
     reward = reward[:reward.index("\n## ")]
     # poca/individual = algo-1M's 3 poca runs: final 70.0 +- 5.0
@@ -73,7 +76,7 @@ def test_a_reward_study_borrows_its_individual_reward_runs_from_an_algo_study(tm
     assert "| ppo/team > ppo/individual | 0.67 [" in reward
     assert "| poca_0 (algo-1M) | poca/individual, 0 |" in reward  # the run table says whose
     saved = json.loads((out / R.REPORT_RUNS_FILE).read_text())["runs"]
-    assert len(saved) == 4 + 6 + 4 + 4  # each run once, as its own study's
+    assert len(saved) == 4 + 6 + 4 + 4 + 4  # each run once, as its own study's
     exported = json.loads((out / "marl_eval.json").read_text())["rl-scan"]["ablation"]
     assert "reward-1M:poca/individual" not in exported
     again = (build_report(out, tmp_path / "again", reference=False) / "report.md").read_text()

@@ -5,7 +5,8 @@ another study in the same report already trained: the reward study's ``poca/indi
 is the algo study's ``poca`` (individual rewards are the default), a team study's 4
 wheeled robots at a point that changes only the quads' settings are another team study's.
 Two trials are the same when they resolve to the same algorithm, algorithm settings and
-EnvConfig (``trial_key``) and were evaluated on the same schedule with as many episodes.
+EnvConfig (``trial_key``), trained with the same preset settings (``same_learning``) and
+were evaluated on the same schedule with as many episodes.
 Borrowed runs join the group under its own condition name with ``borrowed_from`` set;
 they are derived on every build and never written to the report's runs file.
 """
@@ -63,10 +64,19 @@ def same_schedule(a: list[RunRecord], b: list[RunRecord]) -> bool:
         abs(x - y) <= 0.01 * max(x, y) for x, y in zip(steps_a, steps_b))
 
 
+def same_learning(a: list[RunRecord], b: list[RunRecord]) -> bool:
+    """Trained with the same preset settings (``RunRecord.learning``), where both sides
+    recorded them (runs.json files from before the field hold none: unknown, not refused)."""
+    sides = [{json.dumps(r.learning, sort_keys=True) for r in runs if r.learning}
+             for runs in (a, b)]
+    return not (sides[0] and sides[1]) or sides[0] == sides[1]
+
+
 def borrow_runs(data: Collection) -> list[RunRecord]:
     """Add to ``data`` (and return) the runs each study group lacks: for every condition
     of its study it has no run of, the runs of the same trial (``trial_key``) from the
-    group with the most of them whose evaluations match the group's own."""
+    group with the most of them whose preset settings and evaluations match the group's
+    own."""
     by_group: dict[str, list[RunRecord]] = defaultdict(list)
     for r in data.runs:
         if not r.borrowed_from:
@@ -89,7 +99,7 @@ def borrow_runs(data: Collection) -> list[RunRecord]:
         for condition in (c for c in study.conditions if c not in own):
             key = trial_key(kind, condition, data.envs.get(group, {}))
             sources = {g: rs for g, rs in offers.get(key, {}).items()
-                       if g != group and same_schedule(rs, runs)}
+                       if g != group and same_schedule(rs, runs) and same_learning(rs, runs)}
             if not sources:
                 continue
             source = max(sorted(sources), key=lambda g: len(sources[g]))
@@ -105,6 +115,6 @@ def borrowed_lines(runs: list[RunRecord]) -> list[str]:
     if not sources:
         return []
     return ["", "Borrowed runs (the same trial, trained by another study of this report: "
-            "the same algorithm, settings and EnvConfig but for the fields its team never "
-            "reads, evaluated at the same env steps with as many episodes): " + "; ".join(
+            "the same algorithm, settings, preset and EnvConfig but for the fields its team "
+            "never reads, evaluated at the same env steps with as many episodes): " + "; ".join(
                 f"**{c}** = {g}'s {theirs}" for c, g, theirs in sources) + "."]

@@ -43,6 +43,9 @@ class RunRecord:
     meta: list[dict[str, Any]] = field(default_factory=list)
     """A MetaPOCA run's META_FILE entries (one per meta-iteration), kept in runs.json so a
     rebuilt report still tables the adaptation gain."""
+    learning: dict[str, Any] = field(default_factory=dict)
+    """Its preset's settings that shape what it learns (``results.learning_settings``);
+    empty in runs.json files written before them."""
     borrowed_from: tuple[str, str] | None = None
     """(group, condition) this run was trained as, if another study's trial of the same
     config stands in for one its group did not train (``reports.borrow``; never saved)."""
@@ -115,7 +118,7 @@ def read_run(folder: Path, group: str, condition: str) -> RunRecord:
     return RunRecord(group=group, condition=condition, seed=int(meta.get("seed", 0)),
                      path=folder, evals=R.read_evals(folder),
                      eval_episodes=int((meta.get("preset_config") or {}).get(
-                         "evaluation_episodes", 0)),
+                         "evaluation_episodes", 0)), learning=R.learning_settings(meta),
                      env_steps=steps, time_total_s=seconds,
                      scenario=(meta.get("env_config") or {}).get("scenario", ""),
                      algo=meta.get("algo", ""),
