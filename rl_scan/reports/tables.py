@@ -49,7 +49,7 @@ def adaptation_lines(runs: list[RunRecord], rows: list[dict[str, Any]],
               f"{_pm([m['auc'] for m in ms])} |" for cond, ms in sorted(by_cond.items())]
     x, y, goal = spec.speed_ratio
     speed = {r["condition"]: r["speed"] for r in rows}
-    if not math.isnan(speed.get(x, math.nan)) and speed.get(y):
+    if not math.isnan(speed.get(x, math.nan)) and speed.get(y, math.nan) > 0:
         ratio = speed[x] / speed[y]
         lines += ["", f"{x} / {y} env steps to {SPEED_AT:.0%} (the censored means above): "
                   f"**{ratio:.2f}**, the goal is at most {goal:.2f}: "
