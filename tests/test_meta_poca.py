@@ -205,6 +205,8 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer,
     (dict(task_envs=-1), r"meta.task_envs=-1 is invalid"),
     (dict(outer="maml", relabel_query=True), r"meta.relabel_query=True is invalid: allowed "
                                              r"false with outer='maml'"),
+    (dict(outer="maml_dr", query_importance=True), r"meta.query_importance=True is invalid: "
+                                                   r"allowed false unless relabel_query=true"),
     (dict(num_env_runners=1), r"num_env_runners=1"),
 ])
 def test_bad_meta_settings_fail_before_building(meta, message):

@@ -16,7 +16,8 @@ def test_relabelled_episodes_carry_the_current_actors_distribution():
     """relabel_behaviour recomputes each agent step's action distribution with the
     learner's actors: episodes theta sampled keep theta's (the observations and module
     mapping are the ones the runner acted on); after the actors move, the stored
-    distribution is the moved actors' and the log-probability that of its actions."""
+    distribution is the moved actors' while the log-probability stays the sampler's (the
+    importance weight's denominator)."""
     from ray.rllib.core.columns import Columns
 
     config, runner, learner = meta_setup()
@@ -41,12 +42,12 @@ def test_relabelled_episodes_carry_the_current_actors_distribution():
             np.testing.assert_allclose(new[:, :half], old[:, :half], atol=1e-5)  # means
             np.testing.assert_allclose(new[:, half:], old[:, half:] + 0.5, atol=1e-5)
             actions = steps.get_actions()
-            std = np.exp(new[:, half:])
-            logp = (-0.5 * ((actions - new[:, :half]) / std) ** 2 - np.log(std)
-                    - 0.5 * np.log(2 * np.pi)).sum(-1)
+            std = np.exp(old[:, half:])
+            sampler_logp = (-0.5 * ((actions - old[:, :half]) / std) ** 2 - np.log(std)
+                            - 0.5 * np.log(2 * np.pi)).sum(-1)
             np.testing.assert_allclose(
-                after.agent_episodes[aid].get_extra_model_outputs(Columns.ACTION_LOGP), logp,
-                rtol=1e-4, atol=1e-4)
+                after.agent_episodes[aid].get_extra_model_outputs(Columns.ACTION_LOGP),
+                sampler_logp, rtol=1e-4, atol=1e-4)
 
 
 def test_relabel_query_makes_the_update_at_theta_a_plain_update_on_relabelled_batches():
@@ -75,3 +76,25 @@ def test_relabel_query_makes_the_update_at_theta_a_plain_update_on_relabelled_ba
     plain.update(episodes=unlabelled, **plain.update_kwargs({}))
     assert max(float((t - reached[k]).abs().max())
                for k, t in plain.float_state().items()) > 1e-4
+
+
+def test_query_importance_leaves_on_policy_rows_alone_and_weighs_relabelled_ones():
+    """multitask + relabel_query + query_importance: with the query sampled by theta every
+    weight is 1, so the update at theta is the relabel-only one; with the query sampled by
+    the adapted actors theta'_i the weights differ from 1 and so does the update."""
+    reached = {}
+    for adapted in (False, True):
+        for importance in (False, True):
+            config, runner, learner = meta_setup(outer="multitask", relabel_query=True,
+                                                 query_importance=importance)
+            seeded()
+            tasks = make_tasks(learner, runner, adapted_query=adapted)
+            seeded()
+            outer_update(config, learner, tasks)
+            reached[adapted, importance] = state_copy(learner)
+
+    def gap(a, b):
+        return max(float((t - reached[b][k]).abs().max()) for k, t in reached[a].items())
+
+    assert gap((False, False), (False, True)) < 1e-5
+    assert gap((True, False), (True, True)) > 1e-4

@@ -121,6 +121,36 @@ def test_the_joint_ratio_ablation_clips_the_product_of_the_dimensions_ratios():
         POCAConfig().poca(policy_ratio="both")
 
 
+def test_importance_weights_scale_each_rows_clipped_surrogate_and_are_capped():
+    """Decoupled PPO (MetaPOCA's query_importance): the ratio is clipped around the stored
+    distribution (theta's after the relabel), each row weighed by pi_theta / pi_behaviour
+    of its joint action, capped at 2; masked rows get 1 whatever their padding holds."""
+    from rl_scan.algorithms.poca.learner import IMPORTANCE_CAP, actor_loss
+
+    # Both rows: stored N(0, 1) in 2 dims, action (1, 1), the new mean .15 and .1 (the
+    # joint-ratio test's numbers): per-dim ratios e^.13875 and e^.095, unclipped at eps .3.
+    log_std = torch.zeros(3, 2)
+    mean = torch.tensor([[0.15, 0.1]] * 3)
+    fwd = {Columns.ACTION_DIST_INPUTS: torch.cat([mean, log_std], -1)}
+    stored_logp = 2 * (-0.5 - 0.5 * math.log(2 * math.pi))  # joint logp of (1, 1) under N(0, 1)
+    # behaviour logps: row 0 sampled 0.5 nats likelier than theta would (w = e^-.5), row 1
+    # 2 nats less likely (w = e^2 > cap: 2), row 2 masked (garbage padding)
+    behaviour = torch.tensor([stored_logp + 0.5, stored_logp - 2.0, 1e9])
+    batch = {Columns.ACTION_DIST_INPUTS: torch.cat([torch.zeros(3, 2), log_std], -1),
+             Columns.ACTIONS: torch.ones(3, 2), Columns.ACTION_LOGP: behaviour,
+             Columns.LOSS_MASK: torch.tensor([True, True, False]),
+             Postprocessing.ADVANTAGES: torch.tensor([1.0, -1.0, 5.0])}
+    loss, stats = actor_loss(fwd, batch, 0.3, 0.0, importance=True)
+    r = (math.exp(0.13875) + math.exp(0.095)) / 2  # mean over dims of the unclipped surrogate
+    expected = -(math.exp(-0.5) * r * 1.0 + IMPORTANCE_CAP * r * -1.0) / 2
+    assert IMPORTANCE_CAP == 2.0
+    assert loss.item() == pytest.approx(expected, abs=1e-5)
+    assert stats["importance_weight"].item() == pytest.approx((math.exp(-0.5) + 2.0) / 2,
+                                                              abs=1e-6)
+    plain, _ = actor_loss(fwd, batch, 0.3, 0.0)
+    assert plain.item() == pytest.approx(-(r - r) / 2, abs=1e-5)
+
+
 def _critic(slot_kinds, obs_dims=(3, 4), act_dims=(2, 3)):
     import gymnasium as gym
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec

@@ -90,7 +90,9 @@ def _add_meta_arg(parser: argparse.ArgumentParser) -> None:
                              "the query batches; reptile; or multitask: the control without "
                              "the MAML shift), reptile_lr, maml_weight (the MAML term's lr "
                              "as a fraction of POCA's), relabel_query (true: the update at "
-                             "theta takes the adapted actors' query episodes as its own), "
+                             "theta clips the adapted actors' query rows around theta), "
+                             "query_importance (true, with relabel_query: and weighs them "
+                             "by pi_theta / pi_theta'), "
                              "task_envs (envs each task samples on; 0: the preset's) "
                              "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
 

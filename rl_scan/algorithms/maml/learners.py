@@ -15,8 +15,9 @@
 ``critic_frozen`` updates inside a block leave the critic as it is (the per-task updates
                 at theta + delta: the critic learns where the tasks are mixed).
 ``reptile_step`` theta += epsilon * mean over tasks of delta.
-``relabel_behaviour`` episodes sampled by an adapted policy are taken as theta's (the
-                PPO ratio's denominator becomes theta's action distribution).
+``relabel_behaviour`` episodes sampled by an adapted policy are clipped around theta (the
+                PPO ratio's denominator becomes theta's action distribution; the stored
+                log-probability stays the sampler's, for the importance weight).
 
 Return statistics (the critic's PopArt moments) belong to the meta-learner: the outer
 update at theta moves them; inside ``shifted`` they are frozen, so the adapted critic's
@@ -33,7 +34,6 @@ from typing import Any
 import numpy as np
 import torch
 from ray.rllib.core.columns import Columns
-from ray.rllib.core.distribution.torch.torch_distribution import TorchDiagGaussian
 
 from rl_scan.algorithms.poca.learner import POCATorchLearner
 from rl_scan.algorithms.poca.modules import CRITIC_ID
@@ -165,11 +165,13 @@ class MetaPOCALearner(POCATorchLearner):
 
     @torch.no_grad()
     def relabel_behaviour(self, episodes: list) -> None:
-        """In place: every agent step's stored action distribution (and log-probability)
-        becomes the current actors' (theta's). An update at theta then takes batches the
-        adapted actors theta'_i sampled as if theta had sampled them: its ratio starts at 1
-        on every row instead of at pi_theta / pi_theta', and no importance weight corrects
-        for theta' (a bias of one inner update's size)."""
+        """In place: every agent step's stored action distribution becomes the current
+        actors' (theta's). An update at theta then clips its ratio around theta on batches
+        the adapted actors theta'_i sampled: the ratio starts at 1 on every row instead of
+        at pi_theta / pi_theta'. The stored log-probability stays the sampling policy's
+        (theta'_i's), so the loss can weigh each row by pi_theta / pi_theta'_i
+        (``query_importance``); without that weight the relabel is a bias of one inner
+        update's size."""
         for episode in episodes:
             for agent_id, steps in episode.agent_episodes.items():
                 n = len(steps)
@@ -179,13 +181,8 @@ class MetaPOCALearner(POCATorchLearner):
                                       dtype=torch.float32)
                 module = self.module[episode.module_for(agent_id)]
                 inputs = module._forward({Columns.OBS: obs})[Columns.ACTION_DIST_INPUTS]
-                actions = torch.as_tensor(np.asarray(steps.get_actions(slice(0, n))),
-                                          dtype=torch.float32)
-                logp = TorchDiagGaussian.from_logits(inputs).logp(actions)
-                for key, value in ((Columns.ACTION_DIST_INPUTS, inputs),
-                                   (Columns.ACTION_LOGP, logp)):
-                    steps.set_extra_model_outputs(key=key, new_data=value.numpy(),
-                                                  at_indices=slice(0, n))
+                steps.set_extra_model_outputs(key=Columns.ACTION_DIST_INPUTS,
+                                              new_data=inputs.numpy(), at_indices=slice(0, n))
 
     def _snapshot(self) -> tuple[dict, dict]:
         modules = {mid: copy.deepcopy(self.module[mid].state_dict())

@@ -15,7 +15,8 @@ Then the outer update (``outer``):
     batch (tasks mixed: the DR update on all the data) before the per-task query updates
     at theta + delta_i (the MAML term added to DR's objective);
   (``maml_weight`` scales the lr of the updates at theta + delta_i: the MAML term's weight;
-  ``relabel_query`` makes the update at theta take the query batches as theta's own);
+  ``relabel_query`` makes the update at theta clip the query rows around theta, and
+  ``query_importance`` weighs them by pi_theta / pi_theta'_i);
   * ``reptile``: theta += reptile_lr * mean_i(theta''_i - theta), theta''_i being theta'_i
     after one more POCA update on the task's query batch;
   * ``multitask`` (a control): one ordinary POCA update at theta on all support and query
@@ -85,6 +86,7 @@ class MetaPOCAConfig(POCAConfig):
         self.reptile_lr = 1.0
         self.maml_weight = 1.0
         self.relabel_query = False
+        self.query_importance = False
         self.task_envs = 0
         self.task_pool = N_TRAIN
 

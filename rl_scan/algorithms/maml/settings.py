@@ -54,6 +54,12 @@ class MetaSettings:
     the adapted actors theta'_i, as if theta had sampled them (its PPO ratio starts at 1
     on them). Without it the ratio starts at pi_theta / pi_theta'_i, one inner update away
     from 1, and PPO's clip drops many query rows' gradient from the first minibatch on."""
+    query_importance: bool = False
+    """With ``relabel_query``: each query row of the update at theta is weighed by
+    pi_theta / pi_theta'_i of its action (capped at 2; ``poca.learner.importance_weights``),
+    the decoupled PPO objective: the ratio is clipped around theta and the weight makes the
+    surrogate an expectation under theta although theta'_i sampled the rows. Without it
+    the relabelled rows pull theta towards the actions theta'_i prefers."""
     task_envs: int = 0
     """Envs (worlds) the runner samples each task's batches on, in place of the preset's
     ``num_envs_per_env_runner`` (0: the preset's). One env lets a 4k meta-iteration hold
@@ -76,6 +82,10 @@ class MetaSettings:
             fail(prefix + "relabel_query", self.relabel_query,
                  f"false with outer={self.outer!r} (it relabels the query batches of the "
                  "update at theta, which only 'maml_dr' and 'multitask' make)")
+        if self.query_importance and not self.relabel_query:
+            fail(prefix + "query_importance", self.query_importance,
+                 "false unless relabel_query=true (the weight corrects the relabelled "
+                 "query rows; without the relabel the ratio already has theta'_i below it)")
 
     def fit_preset(self, preset, prefix: str = ""):
         """The training preset as a MetaPOCA run uses it: support and query steps that fill

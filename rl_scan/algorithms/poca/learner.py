@@ -32,22 +32,47 @@ from rl_scan.algorithms.poca.modules import CRITIC_ID, TRAIN_TABLE
 
 
 def actor_loss(fwd_out: dict[str, Any], batch: dict[str, Any], clip_param: float,
-               beta: float, joint_ratio: bool = False) -> tuple[torch.Tensor, dict[str, Any]]:
+               beta: float, joint_ratio: bool = False, importance: bool = False
+               ) -> tuple[torch.Tensor, dict[str, Any]]:
     """PPO-clipped policy loss minus beta * entropy. The ratio is taken per action dimension
-    (ML-Agents), or of the joint density with ``joint_ratio`` (RLlib's PPO; an ablation)."""
+    (ML-Agents), or of the joint density with ``joint_ratio`` (RLlib's PPO; an ablation).
+    With ``importance`` each row is weighed by ``importance_weights`` (rows sampled by
+    another policy than the one the ratio is clipped around: MetaPOCA's query rows)."""
     mean, log_std = fwd_out[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
     old_mean, old_log_std = batch[Columns.ACTION_DIST_INPUTS].chunk(2, dim=-1)
     actions = batch[Columns.ACTIONS]
     logp = gaussian_logp_per_dim(actions, mean, log_std)
     old_logp = gaussian_logp_per_dim(actions, old_mean, old_log_std).detach()
+    mask = batch[Columns.LOSS_MASK]
+    weights = (importance_weights(old_logp.sum(-1), batch[Columns.ACTION_LOGP], mask)
+               if importance else None)
     if joint_ratio:
         logp, old_logp = logp.sum(-1, keepdim=True), old_logp.sum(-1, keepdim=True)
-    mask = batch[Columns.LOSS_MASK]
     policy_loss = clipped_policy_loss(logp, old_logp, batch[Postprocessing.ADVANTAGES],
-                                      clip_param, mask)
+                                      clip_param, mask, weights)
     entropy = masked_mean(gaussian_entropy(log_std), mask)
-    return policy_loss - beta * entropy, {"policy_loss": policy_loss.detach(),
-                                          "entropy": entropy.detach(), "entropy_coeff": beta}
+    stats = {"policy_loss": policy_loss.detach(), "entropy": entropy.detach(),
+             "entropy_coeff": beta}
+    if weights is not None:
+        stats["importance_weight"] = masked_mean(weights, mask)
+    return policy_loss - beta * entropy, stats
+
+
+IMPORTANCE_CAP = 2.0
+"""The largest importance weight a row gets (truncated importance sampling, as V-trace's
+rho-bar: a rare action the sampler chose far less often than the clip policy would does
+not dominate a minibatch)."""
+
+
+def importance_weights(clip_logp: torch.Tensor, behaviour_logp: torch.Tensor,
+                       mask: torch.Tensor) -> torch.Tensor:
+    """pi_clip(a) / pi_behaviour(a) of each row's joint action, capped at IMPORTANCE_CAP,
+    1 on masked rows (their stored values may be padding): the decoupled PPO objective's
+    weight (Hilton et al. 2022, "Batch size-invariance for policy optimization"), which
+    makes the clipped surrogate around pi_clip an expectation under pi_clip although
+    pi_behaviour sampled the rows."""
+    weights = torch.exp(clip_logp - behaviour_logp).clamp(max=IMPORTANCE_CAP)
+    return torch.where(mask.bool(), weights, torch.ones_like(weights)).detach()
 
 
 def value_clip(config, clip_param: float) -> float:
@@ -104,7 +129,8 @@ class POCATorchLearner(FusedAdamMixin, TorchLearner):
                                 fwd_out: dict[str, Any]) -> torch.Tensor:
         beta = self.entropy_coeff_schedulers[module_id].get_current_value()
         loss, stats = actor_loss(fwd_out, batch, self.current_clip(), beta,
-                                 joint_ratio=getattr(config, "policy_ratio", "") == "joint")
+                                 joint_ratio=getattr(config, "policy_ratio", "") == "joint",
+                                 importance=getattr(config, "query_importance", False))
         self.metrics.log_dict(stats, key=module_id, window=1)
         return loss
 

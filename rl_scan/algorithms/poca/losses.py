@@ -85,11 +85,15 @@ def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def clipped_policy_loss(logp: torch.Tensor, old_logp: torch.Tensor, advantages: torch.Tensor,
-                        epsilon: float, mask: torch.Tensor) -> torch.Tensor:
-    """-E[min(r A, clip(r, 1-eps, 1+eps) A)] with the ratio r taken per action dimension."""
+                        epsilon: float, mask: torch.Tensor,
+                        weights: torch.Tensor | None = None) -> torch.Tensor:
+    """-E[w min(r A, clip(r, 1-eps, 1+eps) A)] with the ratio r taken per action dimension
+    and w a per-row weight (1 if not given)."""
     ratio = torch.exp(logp - old_logp)
     adv = advantages.unsqueeze(-1)
     surrogate = torch.min(ratio * adv, torch.clamp(ratio, 1.0 - epsilon, 1.0 + epsilon) * adv)
+    if weights is not None:
+        surrogate = surrogate * weights.unsqueeze(-1)
     return -masked_mean(surrogate, mask)
 
 
