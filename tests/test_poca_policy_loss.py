@@ -85,7 +85,8 @@ def test_importance_weights_scale_each_rows_clipped_surrogate_and_are_capped():
     """Decoupled PPO (MetaPOCA's query_importance): the ratio is clipped around the stored
     distribution (theta's after the relabel), each row weighed by pi_theta / pi_behaviour
     of its joint action, capped at 2; masked rows get 1 whatever their padding holds."""
-    from rl_scan.algorithms.poca.learner import IMPORTANCE_CAP, actor_loss
+    from rl_scan.algorithms.poca.learner import actor_loss
+    from rl_scan.algorithms.poca.losses import IMPORTANCE_CAP
 
     # Both rows: stored N(0, 1) in 2 dims, action (1, 1), the new mean .15 and .1 (the
     # joint-ratio test's numbers): per-dim ratios e^.13875 and e^.095, unclipped at eps .3.

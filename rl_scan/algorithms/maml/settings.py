@@ -56,7 +56,7 @@ class MetaSettings:
     from 1, and PPO's clip drops many query rows' gradient from the first minibatch on."""
     query_importance: bool = False
     """With ``relabel_query``: each query row of the update at theta is weighed by
-    pi_theta / pi_theta'_i of its action (capped at 2; ``poca.learner.importance_weights``),
+    pi_theta / pi_theta'_i of its action (capped at 2; ``poca.losses.importance_weights``),
     the decoupled PPO objective: the ratio is clipped around theta and the weight makes the
     surrogate an expectation under theta although theta'_i sampled the rows. Without it
     the relabelled rows pull theta towards the actions theta'_i prefers."""

@@ -97,6 +97,23 @@ def clipped_policy_loss(logp: torch.Tensor, old_logp: torch.Tensor, advantages: 
     return -masked_mean(surrogate, mask)
 
 
+IMPORTANCE_CAP = 2.0
+"""The largest importance weight a row gets (truncated importance sampling, as V-trace's
+rho-bar: a rare action the sampler chose far less often than the clip policy would does
+not dominate a minibatch)."""
+
+
+def importance_weights(clip_logp: torch.Tensor, behaviour_logp: torch.Tensor,
+                       mask: torch.Tensor) -> torch.Tensor:
+    """pi_clip(a) / pi_behaviour(a) of each row's joint action, capped at IMPORTANCE_CAP,
+    1 on masked rows (their stored values may be padding): the decoupled PPO objective's
+    weight (Hilton et al. 2022, "Batch size-invariance for policy optimization"), which
+    makes the clipped surrogate around pi_clip an expectation under pi_clip although
+    pi_behaviour sampled the rows."""
+    weights = torch.exp(clip_logp - behaviour_logp).clamp(max=IMPORTANCE_CAP)
+    return torch.where(mask.bool(), weights, torch.ones_like(weights)).detach()
+
+
 def trust_region_value_loss(values: torch.Tensor, old_values: torch.Tensor,
                             returns: torch.Tensor, epsilon: float,
                             mask: torch.Tensor) -> torch.Tensor:
