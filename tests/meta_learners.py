@@ -44,13 +44,15 @@ def seeded(seed: int = 0) -> None:
 
 
 def outer_update(config, learner, tasks) -> None:
-    """MetaPOCA's outer update on ``tasks`` (it reads only the algorithm's config and
-    timesteps, so no algorithm is built)."""
+    """MetaPOCA's outer update on ``tasks`` with theta's batch = their support batches (as
+    ``sampling='per_task'`` has it; it reads only the algorithm's config and timesteps,
+    so no algorithm is built)."""
     from types import SimpleNamespace
 
     from rl_scan.algorithms.maml.meta_poca import MetaPOCA
 
-    MetaPOCA._outer_update(SimpleNamespace(config=config, _timesteps=dict), learner, tasks)
+    MetaPOCA._outer_update(SimpleNamespace(config=config, _timesteps=dict), learner,
+                           [e for t in tasks for e in t.support], tasks)
 
 
 def make_tasks(learner, runner, scenarios=("train:0", "train:1"), adapted_query=False) -> list:

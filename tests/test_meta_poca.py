@@ -196,7 +196,16 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer,
                              r"num_envs_per_env_runner=2"),
     (dict(query_steps=1), r"meta.query_steps=1 is invalid"),
     (dict(query_steps=22), r"meta.query_steps=22 is invalid: allowed at least max_steps x "
-                           r"num_envs_per_env_runner = 24"),
+                           r"num_envs_per_env_runner=2 = 24"),
+    (dict(sampling="pooled"), r"meta.sampling='pooled' is invalid: allowed one of "
+                              r"\['per_task', 'shared'\]"),
+    (dict(sampling="shared", support_steps=46), r"meta.support_steps=46 is invalid: allowed "
+                                                r"at least 2 x max_steps x "
+                                                r"num_envs_per_env_runner=2 = 48"),
+    (dict(sampling="shared", support_steps=48, tasks=3), r"meta.tasks=3 is invalid: allowed "
+                                                         r"at most num_envs_per_env_runner=2"),
+    (dict(sampling="shared", support_steps=48, query_steps=11),
+     r"meta.query_steps=11 is invalid: allowed at least max_steps x the side runner's 1 env"),
     (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'maml_dr', "
                         r"'reptile', 'multitask'\]"),
     (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),

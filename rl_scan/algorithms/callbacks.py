@@ -49,6 +49,13 @@ def episode_summary(episode) -> dict[str, float] | None:
                  if isinstance(i, dict) and "episode_metrics" in i), None)
 
 
+def episode_scenario(episode) -> str | None:
+    """The scene a finished episode ran on (``train:*`` resolved to ``train:k``; None if cut)."""
+    infos = episode.get_infos(-1)
+    return next((i["scenario"] for i in infos.values()
+                 if isinstance(i, dict) and "scenario" in i), None)
+
+
 class ScanMetricsCallback(RLlibCallback):
     """Logs ``scan/*`` episode metrics from the env's final infos; stops on NaN losses."""
 

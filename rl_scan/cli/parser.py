@@ -92,7 +92,10 @@ def _add_meta_arg(parser: argparse.ArgumentParser) -> None:
                              "as a fraction of POCA's), relabel_query (true: the update at "
                              "theta clips the adapted actors' query rows around theta), "
                              "query_importance (true, with relabel_query: and weighs them "
-                             "by pi_theta / pi_theta'), "
+                             "by pi_theta / pi_theta'), sampling (per_task: each task "
+                             "samples fresh support and query episodes; shared: theta "
+                             "samples DR's batch, the tasks are its whole episodes, queries "
+                             "run on a one-env side runner), "
                              "task_envs (envs each task samples on; 0: the preset's) "
                              "(e.g. --meta outer=reptile --meta reptile_lr=0.5)")
 

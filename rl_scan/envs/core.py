@@ -89,6 +89,7 @@ class ScanCore:
         if name == "train:*":
             name = f"train:{int(self.np_random.integers(N_TRAIN))}"
         self.world = self._world(name)
+        self.world_name = name  # the scene drawn (``train:*`` names one train scene)
         obs = self.world.reset(self.np_random)
         self.t = 0
         self.done = False
@@ -159,7 +160,7 @@ class ScanCore:
         if self.done:
             summary = self.episode_metrics()
             for aid in self.agent_ids:
-                infos[aid] = {"episode_metrics": summary}
+                infos[aid] = {"episode_metrics": summary, "scenario": self.world_name}
         return self._split(obs), rew, terminated, truncated, infos
 
     def _inject_fault(self) -> bool:

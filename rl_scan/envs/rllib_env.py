@@ -3,7 +3,8 @@
 Agent ids are ``wheeled_i`` and ``quad_j``; map them to the two policy groups with
 ``policy_mapping_fn = lambda aid, *a, **k: kind_of(aid)``. All robots act every step.
 ``env_config`` is an ``EnvConfig`` mapping, plus an optional ``render_mode``
-("rgb_array"). The last step's infos carry ``episode_metrics`` for callbacks.
+("rgb_array"). The last step's infos carry ``episode_metrics`` for callbacks and the
+``scenario`` the episode ran on (MetaPOCA picks its tasks from DR batches by it).
 """
 
 from __future__ import annotations

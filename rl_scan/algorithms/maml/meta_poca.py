@@ -6,11 +6,16 @@ Per meta-iteration, for each of ``meta_tasks`` distinct train scenarios (task i)
      preset's epochs and minibatches, Adam at POCA's lr x ``inner_lr`` from a fresh state,
      actors and critic) give theta'_i and delta_i = theta'_i - theta; the learner returns to theta;
   3. sample ``query_steps`` env steps with theta'_i.
+With ``sampling='shared'`` step 1 is DR's: one batch of ``support_steps`` with theta on the
+runner's envs (``train:*``, episodes continued across meta-iterations) is theta's batch,
+and the tasks are ``meta_tasks`` of its whole episodes (their scenes); step 3 runs on a
+one-env side runner so that DR's episodes go on.
 Then the outer update (``outer``):
-  * ``maml``: one ordinary POCA update at theta on every task's support batch (the
-    gradient DR would take from the same data), then per task one on its query batch at
-    theta + delta_i (advantages from the adapted critic): each minibatch is one meta-Adam
-    step with the first-order MAML gradient, clipped against the policy that sampled it;
+  * ``maml``: one ordinary POCA update at theta on theta's batch (every task's support
+    batch; with ``shared`` sampling DR's batch: the gradient DR takes from it), then per
+    task one on its query batch at theta + delta_i (advantages from the adapted critic):
+    each minibatch is one meta-Adam step with the first-order MAML gradient, clipped
+    against the policy that sampled it;
   * ``maml_dr``: as ``maml``, but the update at theta learns from every support and query
     batch (tasks mixed: the DR update on all the data) before the per-task query updates
     at theta + delta_i (the MAML term added to DR's objective);
@@ -49,9 +54,9 @@ from ray.rllib.utils.metrics import (
     TIMERS,
 )
 
-from rl_scan.algorithms.callbacks import episode_summary
+from rl_scan.algorithms.callbacks import episode_scenario, episode_summary
 from rl_scan.algorithms.maml.learners import Key, MetaPOCALearner
-from rl_scan.algorithms.maml.settings import MetaSettings, check_steps_fit
+from rl_scan.algorithms.maml.settings import MetaSettings
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
 from rl_scan.config import check_range, fail
@@ -87,6 +92,7 @@ class MetaPOCAConfig(POCAConfig):
         self.maml_weight = 1.0
         self.relabel_query = False
         self.query_importance = False
+        self.sampling = "per_task"
         self.task_envs = 0
         self.task_pool = N_TRAIN
 
@@ -117,16 +123,8 @@ class MetaPOCAConfig(POCAConfig):
         if self.task_envs and self.task_envs != self.num_envs_per_env_runner:
             fail("meta.task_envs", self.task_envs, "0 or num_envs_per_env_runner="
                  f"{self.num_envs_per_env_runner} (meta_poca_config sets it from task_envs)")
-        check_steps_fit(self.support_steps, self.query_steps, self.num_envs_per_env_runner,
-                        "meta.")
-        max_steps = int(self.env_config.get("max_steps", 0))
-        for name in ("support_steps", "query_steps"):  # every sample starts fresh episodes
-            steps = getattr(self, name)
-            if steps // self.num_envs_per_env_runner < max_steps:
-                fail(f"meta.{name}", steps, f"at least max_steps x num_envs_per_env_runner = "
-                                            f"{max_steps * self.num_envs_per_env_runner} (each "
-                                            "sample starts fresh episodes: fewer steps per env "
-                                            "would cut every episode short)")
+        self.settings().check_steps_fit(self.num_envs_per_env_runner, "meta.",
+                                        max_steps=int(self.env_config.get("max_steps", 0)))
         if self.num_env_runners != 0:
             fail("num_env_runners", self.num_env_runners,
                  "0 (MetaPOCA samples its tasks on the local env runner)")
@@ -182,21 +180,15 @@ class MetaPOCA(POCA):
         actor_ids = [mid for mid in runner.module.keys() if mid != CRITIC_ID]
         meta_actors = {mid: copy.deepcopy(runner.module[mid].state_dict())
                        for mid in actor_ids}
-        tasks = []
-        for scenario in self.meta_tasks_of(self.iteration):
-            set_task(runner, scenario)
-            support = self._sample(runner, meta_actors, cfg.support_steps)
-            with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-                delta, adapted, _ = learner.adapt(support, self._timesteps(),
-                                                  cfg.inner_updates,
-                                                  adam=cfg.inner_adam,
-                                                  lr_scale=cfg.inner_lr)
-            query = self._sample(runner, adapted, cfg.query_steps)
-            tasks.append(Task(scenario, support, query, delta))
-        set_task(runner, cfg.env_config.get("scenario", "ablation"))
-        self.metrics.aggregate([runner.get_metrics()], key=ENV_RUNNER_RESULTS)
-        # diagnostics: the adaptation gain (query episodes with theta'_i vs support with
-        # theta) and how far the inner update moves the parameters
+        if cfg.sampling == "shared":
+            at_theta, tasks = self._shared_tasks(learner, meta_actors)
+            runners = [runner, self._query_runner()]
+        else:
+            at_theta, tasks = self._per_task_tasks(learner, meta_actors)
+            runners = [runner]
+        self.metrics.aggregate([r.get_metrics() for r in runners], key=ENV_RUNNER_RESULTS)
+        # diagnostics: the adaptation gain (query episodes with theta'_i vs the tasks'
+        # support episodes with theta) and how far the inner update moves the parameters
         self.metrics.log_value(META_BEFORE, mean_coverage(
             [e for t in tasks for e in t.support]), window=1)
         self.metrics.log_value(META_AFTER, mean_coverage(
@@ -206,7 +198,7 @@ class MetaPOCA(POCA):
         self.metrics.log_value(META_DELTA_COSINE, delta_cosine(
             [t.delta for t in tasks], parameter_keys(learner)), window=1)
         with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-            results = self._outer_update(learner, tasks)
+            results = self._outer_update(learner, at_theta, tasks)
         # The update at theta is DR's on the same data, so its results (the critic's
         # explained variance included) stand where POCA's do; merged with the MAML term's
         # single-task updates at theta + delta_i, RLlib would log the mean of them all.
@@ -216,9 +208,66 @@ class MetaPOCA(POCA):
         self.env_runner_group.sync_weights(from_worker_or_learner_group=self.learner_group,
                                            policies=actor_ids, inference_only=True)
 
-    def _outer_update(self, learner: MetaPOCALearner, tasks: list[Task]) -> list[dict]:
-        """The meta update on every sampled step (see the module doc); the episodes are
-        its own from here (RLlib's learner connectors extend them in place)."""
+    def _per_task_tasks(self, learner: MetaPOCALearner, meta_actors: dict
+                        ) -> tuple[list, list[Task]]:
+        """``sampling='per_task'``: each task's support and query from fresh episodes of
+        its scene on the runner; theta's batch is every support batch."""
+        cfg = self.config
+        runner = self.env_runner
+        tasks = []
+        for scenario in self.meta_tasks_of(self.iteration):
+            set_task(runner, scenario)
+            support = self._sample(runner, meta_actors, cfg.support_steps)
+            tasks.append(self._adapted_task(learner, runner, scenario, support))
+        set_task(runner, cfg.env_config.get("scenario", "ablation"))
+        return [e for t in tasks for e in t.support], tasks
+
+    def _shared_tasks(self, learner: MetaPOCALearner, meta_actors: dict
+                      ) -> tuple[list, list[Task]]:
+        """``sampling='shared'``: DR's batch with theta (episodes continued), the tasks
+        drawn from its whole episodes, each query on the side runner."""
+        cfg = self.config
+        with self.metrics.log_time((TIMERS, ENV_RUNNER_SAMPLING_TIMER)):
+            self._load_actors(self.env_runner, meta_actors)
+            batch = self.env_runner.sample(num_timesteps=cfg.support_steps)
+        whole = [e for e in batch if e.is_done and e.env_t_started == 0]
+        rng = np.random.default_rng([cfg.seed or 0, self.iteration])
+        picked = rng.choice(len(whole), size=min(cfg.meta_tasks, len(whole)), replace=False)
+        side = self._query_runner()
+        tasks = []
+        for i in sorted(picked):
+            episode = whole[int(i)]
+            set_task(side, episode_scenario(episode))
+            tasks.append(self._adapted_task(learner, side, episode_scenario(episode),
+                                            [episode]))
+        return batch, tasks
+
+    def _adapted_task(self, learner: MetaPOCALearner, runner, scenario: str,
+                      support: list) -> Task:
+        """The inner update on ``support`` (theta'_i, delta_i), then the query batch sampled
+        by theta'_i on ``runner`` (set to ``scenario``) from fresh episodes."""
+        cfg = self.config
+        with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
+            delta, adapted, _ = learner.adapt(support, self._timesteps(), cfg.inner_updates,
+                                              adam=cfg.inner_adam, lr_scale=cfg.inner_lr)
+        query = self._sample(runner, adapted, cfg.query_steps)
+        return Task(scenario, support, query, delta)
+
+    def _query_runner(self):
+        """The one-env runner the ``shared`` layout samples queries on (built once; its own
+        env seeds: worker index 1)."""
+        if getattr(self, "_side_runner", None) is None:
+            config = self.config.copy(copy_frozen=False)
+            config.num_envs_per_env_runner = 1
+            self._side_runner = type(self.env_runner)(config=config, worker_index=1,
+                                                      num_workers=1)
+        return self._side_runner
+
+    def _outer_update(self, learner: MetaPOCALearner, at_theta: list,
+                      tasks: list[Task]) -> list[dict]:
+        """The meta update on every sampled step (see the module doc): ``at_theta`` is
+        theta's own batch; the episodes are the update's from here (RLlib's learner
+        connectors extend them in place)."""
         timesteps = self._timesteps()
         if self.config.outer_rule == "reptile":
             deltas = [learner.adapt(t.query, timesteps, 1, start=t.delta)[0] for t in tasks]
@@ -226,7 +275,7 @@ class MetaPOCA(POCA):
             return []
         kwargs = learner.update_kwargs(timesteps)
         rule = self.config.outer_rule
-        at_theta = [e for t in tasks for e in t.support]
+        at_theta = list(at_theta)
         if rule in ("multitask", "maml_dr"):  # every batch at theta, tasks mixed
             query = [e for t in tasks for e in t.query]
             query = query if rule == "multitask" else copy.deepcopy(query)

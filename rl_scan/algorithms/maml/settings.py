@@ -10,6 +10,7 @@ from rl_scan.envs.sim.scenarios import N_TRAIN
 
 OUTER_RULES = ("maml", "maml_dr", "reptile", "multitask")
 INNER_ADAM = ("fresh", "meta", "scale")
+SAMPLING = ("per_task", "shared")
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,14 @@ class MetaSettings:
     the decoupled PPO objective: the ratio is clipped around theta and the weight makes the
     surrogate an expectation under theta although theta'_i sampled the rows. Without it
     the relabelled rows pull theta towards the actions theta'_i prefers."""
+    sampling: str = "per_task"
+    """``per_task``: every task samples its support (theta) and query (theta'_i) batches
+    from fresh episodes of its scene on the runner's envs. ``shared``: the runner samples
+    ``support_steps`` with theta exactly as DR does (``train:*``, episodes continued across
+    meta-iterations) and the update at theta learns from all of it; the tasks are ``tasks``
+    of the whole episodes in that batch (a scene each), and each task's query
+    (``query_steps`` from a fresh episode of its scene, theta'_i) runs on a one-env side
+    runner. A meta-iteration then costs support_steps + tasks x query_steps env steps."""
     task_envs: int = 0
     """Envs (worlds) the runner samples each task's batches on, in place of the preset's
     ``num_envs_per_env_runner`` (0: the preset's). One env lets a 4k meta-iteration hold
@@ -78,6 +87,8 @@ class MetaSettings:
         check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
         check_range(prefix + "maml_weight", self.maml_weight, 0.0, 10.0)
         check_range(prefix + "task_envs", self.task_envs, 0, 256)
+        if self.sampling not in SAMPLING:
+            fail(prefix + "sampling", self.sampling, f"one of {list(SAMPLING)}")
         if self.relabel_query and self.outer not in ("maml_dr", "multitask"):
             fail(prefix + "relabel_query", self.relabel_query,
                  f"false with outer={self.outer!r} (it relabels the query batches of the "
@@ -94,8 +105,7 @@ class MetaSettings:
         envs per runner if set)."""
         if self.task_envs:
             preset = dataclasses.replace(preset, num_envs_per_env_runner=self.task_envs)
-        check_steps_fit(self.support_steps, self.query_steps,
-                        preset.num_envs_per_env_runner, prefix)
+        self.check_steps_fit(preset.num_envs_per_env_runner, prefix)
         per_iteration = self.env_steps_per_iteration()
         if preset.total_env_steps % per_iteration:
             fail("total_env_steps", preset.total_env_steps,
@@ -108,16 +118,42 @@ class MetaSettings:
             if getattr(preset, name) > 0})
 
     def env_steps_per_iteration(self) -> int:
+        if self.sampling == "shared":
+            return self.support_steps + self.tasks * self.query_steps
         return self.tasks * (self.support_steps + self.query_steps)
 
-
-def check_steps_fit(support_steps: int, query_steps: int, envs: int, prefix: str = "") -> None:
-    """Support and query steps must be multiples of the runner's envs (every env steps
-    alike, and nothing sampled is discarded)."""
-    for name, steps in (("support_steps", support_steps), ("query_steps", query_steps)):
-        if steps < envs or steps % envs:
-            fail(prefix + name, steps, f"a multiple of num_envs_per_env_runner={envs} "
-                                       "(every env steps alike; nothing is discarded)")
+    def check_steps_fit(self, envs: int, prefix: str = "", max_steps: int = 0) -> None:
+        """Batches the runner's ``envs`` sample whole: support (and, per task, query) steps
+        a multiple of the envs that sample them (every env steps alike, nothing sampled is
+        discarded); with ``max_steps`` (the episode length), batches long enough for whole
+        episodes."""
+        runner = f"num_envs_per_env_runner={envs}"
+        samplers = {"support_steps": (envs, runner),
+                    "query_steps": ((1, "the side runner's 1 env") if self.sampling == "shared"
+                                    else (envs, runner))}
+        for name, (n, label) in samplers.items():
+            steps = getattr(self, name)
+            if steps < n or steps % n:
+                fail(prefix + name, steps, f"a multiple of {label} (every env steps alike; "
+                                           "nothing is discarded)")
+        if not max_steps:
+            return
+        if self.sampling == "shared":
+            if self.support_steps // envs < 2 * max_steps:
+                fail(prefix + "support_steps", self.support_steps,
+                     f"at least 2 x max_steps x {runner} = {2 * max_steps * envs} with "
+                     "sampling='shared' (episodes continue across meta-iterations: each env "
+                     "then holds a whole episode for a task in every batch)")
+            if self.tasks > envs:
+                fail(prefix + "tasks", self.tasks, f"at most {runner} with sampling='shared' "
+                                                   "(the batch's whole episodes are the tasks)")
+            del samplers["support_steps"]  # continued episodes: no fresh start to fill
+        for name, (n, label) in samplers.items():  # every other sample starts fresh episodes
+            steps = getattr(self, name)
+            if steps // n < max_steps:
+                fail(prefix + name, steps, f"at least max_steps x {label} = {max_steps * n} "
+                                           "(each sample starts fresh episodes: fewer steps "
+                                           "per env would cut every episode short)")
 
 
 # Smaller task batches for the short presets (the defaults are the paper's: 200k env steps

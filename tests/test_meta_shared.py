@@ -1,0 +1,61 @@
+"""MetaPOCA's ``sampling='shared'`` layout: theta samples DR's batch (episodes continued),
+the tasks are whole episodes of it, each query runs on a one-env side runner with the
+task's scene, and every charged env step is learned from.
+
+Real Ray, the real env runners and learner (local mode).
+"""
+
+from __future__ import annotations
+
+from meta_learners import TRAINING
+
+from rl_scan.algorithms.callbacks import episode_scenario
+from rl_scan.algorithms.maml import meta_poca_config
+
+ENV = {"max_steps": 12, "scenario": "train:*"}
+
+
+def test_shared_layout_learns_theta_on_the_whole_batch_and_queries_the_tasks_scenes(
+        ray_session):
+    config = meta_poca_config(ENV, tasks=2, support_steps=60, query_steps=12,
+                              sampling="shared", outer="maml", **TRAINING)
+    algo = config.build_algo()
+    main, side = algo.env_runner, algo._query_runner()
+    batches: dict[str, list] = {"main": [], "side": []}
+
+    def recording(runner, name):
+        real = runner.sample
+
+        def sample(**kwargs):
+            episodes = real(**kwargs)
+            batches[name].append(episodes)
+            return episodes
+        return sample
+
+    main.sample, side.sample = recording(main, "main"), recording(side, "side")
+    learner = algo.learner_group._learner
+    updates: list[int] = []  # env steps of every learner update, in order
+    real_update = learner.update
+
+    def recording_update(**kwargs):
+        updates.append(sum(e.env_steps() for e in kwargs["episodes"]))
+        return real_update(**kwargs)
+
+    learner.update = recording_update
+    result = algo.train()
+    algo.stop()
+
+    assert [sum(e.env_steps() for e in b) for b in batches["main"]] == [60]
+    assert [sum(e.env_steps() for e in b) for b in batches["side"]] == [12, 12]
+    assert result["env_runners"]["num_env_steps_sampled_lifetime"] == 60 + 2 * 12
+    # 2 inner updates on one whole episode each, theta's on the whole batch, the MAML
+    # term's 2 query updates at theta + delta_i
+    assert updates == [12, 12, 60, 12, 12]
+    batch = batches["main"][0]
+    whole = {episode_scenario(e) for e in batch if e.is_done and e.env_t_started == 0}
+    queried = [episode_scenario(q) for b in batches["side"] for q in b]
+    assert all(s is not None and s.startswith("train:") and s != "train:*" for s in queried)
+    assert set(queried) <= whole  # each query ran on its task's scene
+    # 30 steps per env: two whole episodes and a chunk that the next batch continues
+    assert any(not e.is_done for e in batch)
+    assert main.env.unwrapped.envs[0].unwrapped.core.scenario_name == "train:*"
