@@ -130,6 +130,62 @@ def test_a_meta_iteration_learns_from_every_step_it_charges(ray_session):
     assert result[META_TERM_RESULTS][CRITIC_ID][EV_VALUE] == pytest.approx(np.mean(evs[3:]))
 
 
+def test_the_mean_maml_step_steps_once_per_minibatch_whatever_the_task_count(monkeypatch):
+    config, runner, learner = meta_setup(maml_step="mean")
+    tasks = make_tasks(learner, runner, scenarios=("train:0", "train:1", "train:2"))
+    steps = []
+    real = type(learner).apply_gradients
+    monkeypatch.setattr(type(learner), "apply_gradients",
+                        lambda self, grads: (steps.append(1), real(self, grads))[1])
+    rows = max(_module_rows(tasks[0].query, mid) for mid in ("wheeled", "quad"))
+    term = math.ceil(config.num_epochs * rows / config.minibatch_size)
+    at_theta = math.ceil(config.num_epochs * max(
+        _module_rows([e for t in tasks for e in t.support], mid) for mid in ("wheeled", "quad"))
+        / config.minibatch_size)
+    outer_update(config, learner, tasks)
+    assert len(steps) == at_theta + term and term >= config.num_epochs
+
+
+def test_the_mean_maml_step_applies_the_tasks_mean_gradient_at_theta_plus_delta_i(
+        monkeypatch):
+    """Reference: each task's gradient from an ordinary update inside shifted(delta_i)
+    (critic frozen), recorded and not applied; one Adam step on their mean."""
+    config, runner, learner = meta_setup(maml_step="mean")
+    tasks = make_tasks(learner, runner, adapted_query=True)
+    whole = dict(timesteps={}, num_epochs=1, minibatch_size=100_000,
+                 shuffle_batch_per_epoch=False)
+    recorded = []
+    cls = type(learner)
+    real_gradients, real_apply = cls.compute_gradients, cls.apply_gradients
+    with monkeypatch.context() as patch:
+        patch.setattr(cls, "compute_gradients", lambda self, losses, **kw: recorded.append(
+            {k: g.detach().clone() for k, g in real_gradients(self, losses).items()
+             if g is not None}) or recorded[-1])
+        patch.setattr(cls, "apply_gradients", lambda self, grads: None)
+        for task in tasks:
+            with learner.shifted(task.delta), learner.critic_frozen():
+                learner.update(episodes=copy.deepcopy(task.query), **whole)
+    first, second = recorded
+    assert first.keys() == second.keys()
+    assert max(float((first[k] - second[k]).abs().max()) for k in first) > 1e-3
+    saved = learner._snapshot()
+    real_apply(learner, learner.postprocess_gradients(
+        {k: (first[k] + second[k]) / 2 for k in first}))
+    expected = state_copy(learner)
+    learner._restore(saved)
+    theta = state_copy(learner)
+    learner.mean_shifted_update([(copy.deepcopy(t.query), t.delta) for t in tasks], **whole)
+    moved = 0
+    for key, t in state_copy(learner).items():
+        # Adam steps are ~lr = 1e-3 per weight; threaded matmuls leave ~1e-6 of roundoff
+        torch.testing.assert_close(t, expected[key], rtol=1e-4, atol=1e-5)
+        moved += bool((t - theta[key]).abs().max() > 0)
+    assert moved > 10
+    critic = [k for k in theta if k[0] == CRITIC_ID]
+    after = state_copy(learner)  # the critic takes no step (only the shift's roundoff)
+    assert critic and all(torch.allclose(after[k], theta[k], atol=1e-6) for k in critic)
+
+
 def test_reptile_moves_theta_by_the_mean_task_delta():
     config, runner, learner = meta_setup(outer="reptile", reptile_lr=0.5)
     theta = state_copy(learner)
@@ -206,6 +262,10 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer,
                                                          r"at most num_envs_per_env_runner=2"),
     (dict(sampling="shared", support_steps=48, query_steps=11),
      r"meta.query_steps=11 is invalid: allowed at least max_steps x the side runner's 1 env"),
+    (dict(maml_step="sum"), r"meta.maml_step='sum' is invalid: allowed one of "
+                            r"\['per_task', 'mean'\]"),
+    (dict(outer="multitask", maml_step="mean"), r"meta.maml_step='mean' is invalid: "
+                                                r"allowed 'per_task' with outer='multitask'"),
     (dict(outer="sgd"), r"meta.outer='sgd' is invalid: allowed one of \['maml', 'maml_dr', "
                         r"'reptile', 'multitask'\]"),
     (dict(inner_adam="warm"), r"meta.inner_adam='warm' is invalid"),

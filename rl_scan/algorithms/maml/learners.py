@@ -12,6 +12,8 @@
                 constant: what ``torch.func.functional_call`` at theta + delta gives),
                 with no second copy of the modules.
 ``lr_scaled``   every optimizer's lr times a factor for a block (the MAML term's weight).
+``mean_shifted_update`` the MAML term with one meta-Adam step per minibatch on the mean
+                over tasks of the gradients at theta + delta_i (the paper's meta-gradient).
 ``critic_frozen`` updates inside a block leave the critic as it is (the per-task updates
                 at theta + delta: the critic learns where the tasks are mixed).
 ``reptile_step`` theta += epsilon * mean over tasks of delta.
@@ -34,6 +36,8 @@ from typing import Any
 import numpy as np
 import torch
 from ray.rllib.core.columns import Columns
+from ray.rllib.core.learner.training_data import TrainingData
+from ray.rllib.utils.minibatch_utils import MiniBatchCyclicIterator
 
 from rl_scan.algorithms.poca.learner import POCATorchLearner
 from rl_scan.algorithms.poca.modules import CRITIC_ID
@@ -129,6 +133,42 @@ class MetaPOCALearner(POCATorchLearner):
             with torch.no_grad():
                 for key, p in params.items():
                     p.sub_(delta[key])
+
+    def mean_shifted_update(self, tasks: list[tuple[list, dict[Key, torch.Tensor]]], *,
+                            timesteps: dict[str, Any], num_epochs: int, minibatch_size: int,
+                            shuffle_batch_per_epoch: bool) -> dict:
+        """The MAML term as the paper's meta-gradient: per (epoch, minibatch) one meta-Adam
+        step at theta with the mean over tasks of the query loss's gradient at
+        theta + delta_i (``tasks``: (query episodes, delta_i) pairs of equal size; actors
+        only, the critic frozen). Each task's batch (advantages from its adapted critic) is
+        built once at theta + delta_i."""
+        self.before_gradient_based_update(timesteps=timesteps)
+        iterators = []
+        with self.critic_frozen():
+            for episodes, delta in tasks:
+                with self.shifted(delta):
+                    batch = self._make_batch_if_necessary(TrainingData(episodes=episodes))
+                iterators.append(MiniBatchCyclicIterator(
+                    self._set_slicing_by_batch_id(batch, value=True), num_epochs=num_epochs,
+                    minibatch_size=minibatch_size,
+                    shuffle_batch_per_epoch=shuffle_batch_per_epoch and num_epochs > 1))
+            for minibatches in zip(*iterators, strict=True):
+                gradients = []
+                for (_, delta), minibatch in zip(tasks, minibatches):
+                    with self.shifted(delta):
+                        fwd_out = self.module.forward_train(minibatch.policy_batches)
+                        losses = self.compute_losses(fwd_out=fwd_out,
+                                                     batch=minibatch.policy_batches)
+                        gradients.append({ref: g.detach().clone() for ref, g in
+                                          self.compute_gradients(losses).items()
+                                          if g is not None})  # the critic's are None
+                    self._log_steps_trained_metrics(minibatch)
+                    self._set_slicing_by_batch_id(minibatch, value=False)
+                mean = {ref: torch.stack([g[ref] for g in gradients]).mean(dim=0)
+                        for ref in gradients[0]}
+                self.apply_gradients(self.postprocess_gradients(mean))
+        self.after_gradient_based_update(timesteps=timesteps)
+        return self.metrics.reduce()
 
     @contextmanager
     def critic_frozen(self) -> Iterator[None]:

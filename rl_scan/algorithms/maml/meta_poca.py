@@ -20,6 +20,7 @@ Then the outer update (``outer``):
     batch (tasks mixed: the DR update on all the data) before the per-task query updates
     at theta + delta_i (the MAML term added to DR's objective);
   (``maml_weight`` scales the lr of the updates at theta + delta_i: the MAML term's weight;
+  ``maml_step='mean'`` makes them one meta-Adam step per minibatch on the mean over tasks;
   ``relabel_query`` makes the update at theta clip the query rows around theta, and
   ``query_importance`` weighs them by pi_theta / pi_theta'_i);
   * ``reptile``: theta += reptile_lr * mean_i(theta''_i - theta), theta''_i being theta'_i
@@ -93,6 +94,7 @@ class MetaPOCAConfig(POCAConfig):
         self.relabel_query = False
         self.query_importance = False
         self.sampling = "per_task"
+        self.maml_step = "per_task"
         self.task_envs = 0
         self.task_pool = N_TRAIN
 
@@ -263,6 +265,12 @@ class MetaPOCA(POCA):
                                                       num_workers=1)
         return self._side_runner
 
+    @override(POCA)
+    def cleanup(self) -> None:
+        if getattr(self, "_side_runner", None) is not None:
+            self._side_runner.stop()
+        super().cleanup()
+
     def _outer_update(self, learner: MetaPOCALearner, at_theta: list,
                       tasks: list[Task]) -> list[dict]:
         """The meta update on every sampled step (see the module doc): ``at_theta`` is
@@ -284,6 +292,11 @@ class MetaPOCA(POCA):
             at_theta += query
         results = [learner.update(episodes=at_theta, **kwargs)]
         if rule == "multitask" or self.config.maml_weight == 0:
+            return results
+        if self.config.maml_step == "mean":
+            with learner.lr_scaled(self.config.maml_weight):
+                results.append(learner.mean_shifted_update(
+                    [(t.query, t.delta) for t in tasks], **kwargs))
             return results
         for task in tasks:  # the critic learns at theta only, where the tasks are mixed
             with (learner.shifted(task.delta), learner.lr_scaled(self.config.maml_weight),

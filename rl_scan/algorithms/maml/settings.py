@@ -11,6 +11,7 @@ from rl_scan.envs.sim.scenarios import N_TRAIN
 OUTER_RULES = ("maml", "maml_dr", "reptile", "multitask")
 INNER_ADAM = ("fresh", "meta", "scale")
 SAMPLING = ("per_task", "shared")
+MAML_STEPS = ("per_task", "mean")
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,12 @@ class MetaSettings:
     """The MAML term's step size as a fraction of POCA's lr (``maml``, ``maml_dr``): the
     per-task query updates at theta + delta run with lr x maml_weight (with Adam the
     length of their steps); 0 leaves only the update at theta."""
+    maml_step: str = "per_task"
+    """How the MAML term (``maml``, ``maml_dr``) steps: ``per_task``, each task's query
+    update at theta + delta_i takes its own meta-Adam steps (one per minibatch), so the
+    term makes tasks x epochs x minibatches steps, each on one task's query; ``mean``, one
+    meta-Adam step per (epoch, minibatch) on the mean over tasks of their gradients at
+    theta + delta_i, the paper's meta-gradient (``MetaPOCALearner.mean_shifted_update``)."""
     relabel_query: bool = False
     """The update at theta (``maml_dr``, ``multitask``) takes the query episodes, sampled by
     the adapted actors theta'_i, as if theta had sampled them (its PPO ratio starts at 1
@@ -87,6 +94,12 @@ class MetaSettings:
         check_range(prefix + "reptile_lr", self.reptile_lr, 0.0, 1.0, lo_open=True)
         check_range(prefix + "maml_weight", self.maml_weight, 0.0, 10.0)
         check_range(prefix + "task_envs", self.task_envs, 0, 256)
+        if self.maml_step not in MAML_STEPS:
+            fail(prefix + "maml_step", self.maml_step, f"one of {list(MAML_STEPS)}")
+        if self.maml_step == "mean" and self.outer not in ("maml", "maml_dr"):
+            fail(prefix + "maml_step", self.maml_step,
+                 f"'per_task' with outer={self.outer!r} (it shapes the MAML term, which "
+                 "only 'maml' and 'maml_dr' take)")
         if self.sampling not in SAMPLING:
             fail(prefix + "sampling", self.sampling, f"one of {list(SAMPLING)}")
         if self.relabel_query and self.outer not in ("maml_dr", "multitask"):
