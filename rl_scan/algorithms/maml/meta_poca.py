@@ -238,10 +238,9 @@ class MetaPOCA(POCA):
         side = self._query_runner()
         tasks = []
         for i in sorted(picked):
-            episode = whole[int(i)]
-            set_task(side, episode_scenario(episode))
-            tasks.append(self._adapted_task(learner, side, episode_scenario(episode),
-                                            [episode]))
+            scenario = episode_scenario(whole[int(i)])
+            set_task(side, scenario)
+            tasks.append(self._adapted_task(learner, side, scenario, [whole[int(i)]]))
         return batch, tasks
 
     def _adapted_task(self, learner: MetaPOCALearner, runner, scenario: str,
