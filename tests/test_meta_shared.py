@@ -7,6 +7,10 @@ Real Ray, the real env runners and learner (local mode).
 
 from __future__ import annotations
 
+import random
+
+import numpy as np
+import torch
 from meta_learners import TRAINING
 
 from rl_scan.algorithms.callbacks import episode_scenario
@@ -59,3 +63,21 @@ def test_shared_layout_learns_theta_on_the_whole_batch_and_queries_the_tasks_sce
     # 30 steps per env: two whole episodes and a chunk that the next batch continues
     assert any(not e.is_done for e in batch)
     assert main.env.unwrapped.envs[0].unwrapped.core.scenario_name == "train:*"
+
+
+def test_building_the_side_runner_leaves_the_process_random_streams_as_they_were(
+        ray_session):
+    config = meta_poca_config(ENV, tasks=2, support_steps=60, query_steps=12,
+                              sampling="shared", **TRAINING)
+    algo = config.build_algo()
+    random.seed(11)
+    np.random.seed(11)
+    torch.manual_seed(11)
+    expected = random.random(), np.random.random(), torch.rand(1).item()
+    random.seed(11)
+    np.random.seed(11)
+    torch.manual_seed(11)
+    algo._query_runner()  # RLlib's EnvRunner reseeds all three when built
+    drawn = random.random(), np.random.random(), torch.rand(1).item()
+    algo.stop()
+    assert drawn == expected

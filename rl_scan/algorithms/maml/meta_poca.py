@@ -39,6 +39,7 @@ adapted actors are loaded between support and query sampling.
 from __future__ import annotations
 
 import copy
+import random
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -256,12 +257,18 @@ class MetaPOCA(POCA):
 
     def _query_runner(self):
         """The one-env runner the ``shared`` layout samples queries on (built once; its own
-        env seeds: worker index 1)."""
+        env seeds: worker index 1). RLlib's EnvRunner seeds the process's random, numpy
+        and torch generators when built (seed + worker index, the next seed's main one);
+        they are put back, so a run's own stream goes on."""
         if getattr(self, "_side_runner", None) is None:
             config = self.config.copy(copy_frozen=False)
             config.num_envs_per_env_runner = 1
+            states = random.getstate(), np.random.get_state(), torch.get_rng_state()
             self._side_runner = type(self.env_runner)(config=config, worker_index=1,
                                                       num_workers=1)
+            random.setstate(states[0])
+            np.random.set_state(states[1])
+            torch.set_rng_state(states[2])
         return self._side_runner
 
     @override(POCA)
