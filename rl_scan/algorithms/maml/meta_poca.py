@@ -162,6 +162,8 @@ class Task:
 class MetaPOCA(POCA):
     """meta-MRSS: first-order MAML-PPO (or Reptile) over POCA (see the module doc)."""
 
+    _side_runner = None  # the ``shared`` layout's query runner, built on first use
+
     @classmethod
     @override(POCA)
     def get_default_config(cls) -> MetaPOCAConfig:
@@ -260,7 +262,7 @@ class MetaPOCA(POCA):
         env seeds: worker index 1). RLlib's EnvRunner seeds the process's random, numpy
         and torch generators when built (seed + worker index, the next seed's main one);
         they are put back, so a run's own stream goes on."""
-        if getattr(self, "_side_runner", None) is None:
+        if self._side_runner is None:
             config = self.config.copy(copy_frozen=False)
             config.num_envs_per_env_runner = 1
             states = random.getstate(), np.random.get_state(), torch.get_rng_state()
@@ -273,7 +275,7 @@ class MetaPOCA(POCA):
 
     @override(POCA)
     def cleanup(self) -> None:
-        if getattr(self, "_side_runner", None) is not None:
+        if self._side_runner is not None:
             self._side_runner.stop()
         super().cleanup()
 

@@ -160,8 +160,9 @@ class MetaSettings:
             if self.tasks > envs:
                 fail(prefix + "tasks", self.tasks, f"at most {runner} with sampling='shared' "
                                                    "(the batch's whole episodes are the tasks)")
-            del samplers["support_steps"]  # continued episodes: no fresh start to fill
-        for name, (n, label) in samplers.items():  # every other sample starts fresh episodes
+        fresh = {name: sampler for name, sampler in samplers.items()  # shared: support
+                 if not (name == "support_steps" and self.sampling == "shared")}  # continues
+        for name, (n, label) in fresh.items():  # these samples start fresh episodes
             steps = getattr(self, name)
             if steps // n < max_steps:
                 fail(prefix + name, steps, f"at least max_steps x {label} = {max_steps * n} "
