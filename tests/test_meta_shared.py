@@ -10,6 +10,7 @@ from __future__ import annotations
 import random
 
 import numpy as np
+import pytest
 import torch
 from meta_learners import TRAINING
 
@@ -19,10 +20,11 @@ from rl_scan.algorithms.maml import meta_poca_config
 ENV = {"max_steps": 12, "scenario": "train:*"}
 
 
+@pytest.mark.parametrize("outer, at_theta", [("maml", 60), ("maml_dr", 60 + 2 * 12)])
 def test_shared_layout_learns_theta_on_the_whole_batch_and_queries_the_tasks_scenes(
-        ray_session):
+        ray_session, outer, at_theta):
     config = meta_poca_config(ENV, tasks=2, support_steps=60, query_steps=12,
-                              sampling="shared", outer="maml", **TRAINING)
+                              sampling="shared", outer=outer, **TRAINING)
     algo = config.build_algo()
     main, side = algo.env_runner, algo._query_runner()
     batches: dict[str, list] = {"main": [], "side": []}
@@ -52,9 +54,10 @@ def test_shared_layout_learns_theta_on_the_whole_batch_and_queries_the_tasks_sce
     assert [sum(e.env_steps() for e in b) for b in batches["main"]] == [60]
     assert [sum(e.env_steps() for e in b) for b in batches["side"]] == [12, 12]
     assert result["env_runners"]["num_env_steps_sampled_lifetime"] == 60 + 2 * 12
-    # 2 inner updates on one whole episode each, theta's on the whole batch, the MAML
-    # term's 2 query updates at theta + delta_i
-    assert updates == [12, 12, 60, 12, 12]
+    # 2 inner updates on one whole episode each, theta's on the whole batch (with
+    # maml_dr the queries too: every charged step), the MAML term's 2 query updates at
+    # theta + delta_i
+    assert updates == [12, 12, at_theta, 12, 12]
     batch = batches["main"][0]
     whole = {episode_scenario(e) for e in batch if e.is_done and e.env_t_started == 0}
     queried = [episode_scenario(q) for b in batches["side"] for q in b]
