@@ -16,6 +16,7 @@ from meta_learners import TRAINING
 
 from rl_scan.algorithms.callbacks import episode_scenario
 from rl_scan.algorithms.maml import meta_poca_config
+from rl_scan.algorithms.poca import poca_config
 
 ENV = {"max_steps": 12, "scenario": "train:*"}
 
@@ -84,3 +85,25 @@ def test_building_the_side_runner_leaves_the_process_random_streams_as_they_were
     drawn = random.random(), np.random.random(), torch.rand(1).item()
     algo.stop()
     assert drawn == expected
+
+
+def test_without_the_maml_term_theta_is_drs_tensor_for_tensor(ray_session):
+    """The task work (inner updates, queries, the MAML term) draws from its own random
+    streams, so with no MAML term theta samples and learns exactly what POCA on the same
+    batches (DR) does; with the term it moves elsewhere."""
+    meta = dict(tasks=2, support_steps=60, query_steps=12, sampling="shared", outer="maml")
+    configs = {"dr": poca_config(ENV, **{**TRAINING, "train_batch_size": 60}),
+               "no_term": meta_poca_config(ENV, maml_weight=0.0, **meta, **TRAINING),
+               "term": meta_poca_config(ENV, maml_weight=1.0, **meta, **TRAINING)}
+    theta = {}
+    for name, config in configs.items():
+        algo = config.build_algo()
+        for _ in range(2):
+            algo.train()
+        module = algo.learner_group._learner.module
+        theta[name] = {(mid, key): t.clone() for mid in module.keys()
+                       for key, t in module[mid].state_dict().items()}
+        algo.stop()
+    assert theta["no_term"].keys() == theta["dr"].keys()
+    assert all(torch.equal(t, theta["dr"][k]) for k, t in theta["no_term"].items())
+    assert not all(torch.equal(t, theta["dr"][k]) for k, t in theta["term"].items())

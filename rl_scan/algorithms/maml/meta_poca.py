@@ -28,6 +28,9 @@ Then the outer update (``outer``):
   * ``multitask`` (a control): one ordinary POCA update at theta on all support and query
     batches together (tasks mixed in every minibatch): domain randomisation on the same data.
 Every sampled env step is learned from, and counted once (the budget is exact).
+The task work (inner updates, queries, the MAML term) draws its random numbers from its own
+streams (``random_streams``): theta's sampling and update draw exactly DR's, so with
+``maml_weight=0`` and ``outer='maml'`` the shared layout's theta is DR's, tensor for tensor.
 
     config = meta_poca_config({"max_steps": 200}, tasks=4, support_steps=800, query_steps=800)
     algo = config.build_algo(); algo.train(); algo.save_to_path("ckpt")
@@ -39,7 +42,6 @@ adapted actors are loaded between support and query sampling.
 from __future__ import annotations
 
 import copy
-import random
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -58,6 +60,7 @@ from ray.rllib.utils.metrics import (
 
 from rl_scan.algorithms.callbacks import episode_scenario, episode_summary
 from rl_scan.algorithms.maml.learners import Key, MetaPOCALearner
+from rl_scan.algorithms.maml.random_streams import own_random_streams
 from rl_scan.algorithms.maml.settings import MetaSettings
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.algorithms.poca.poca import POCA, POCAConfig, poca_config
@@ -71,6 +74,9 @@ from rl_scan.results import (
     META_DELTA_NORM,
     META_TERM_RESULTS,
 )
+
+# the ``own_random_streams`` key's phase: which task work draws from the stream
+ADAPT_PHASE, MAML_TERM_PHASE, SIDE_RUNNER_PHASE = range(3)
 
 CONFIG_ATTRS = {"tasks": "meta_tasks", "outer": "outer_rule"}
 """MetaSettings fields whose MetaPOCAConfig attribute has another name."""
@@ -220,10 +226,10 @@ class MetaPOCA(POCA):
         cfg = self.config
         runner = self.env_runner
         tasks = []
-        for scenario in self.meta_tasks_of(self.iteration):
+        for index, scenario in enumerate(self.meta_tasks_of(self.iteration)):
             set_task(runner, scenario)
             support = self._sample(runner, meta_actors, cfg.support_steps)
-            tasks.append(self._adapted_task(learner, runner, scenario, support))
+            tasks.append(self._adapted_task(learner, runner, scenario, support, index))
         set_task(runner, cfg.env_config.get("scenario", "ablation"))
         return [e for t in tasks for e in t.support], tasks
 
@@ -240,37 +246,41 @@ class MetaPOCA(POCA):
         picked = rng.choice(len(whole), size=min(cfg.meta_tasks, len(whole)), replace=False)
         side = self._query_runner()
         tasks = []
-        for i in sorted(picked):
+        for index, i in enumerate(sorted(picked)):
             scenario = episode_scenario(whole[int(i)])
             set_task(side, scenario)
-            tasks.append(self._adapted_task(learner, side, scenario, [whole[int(i)]]))
+            tasks.append(self._adapted_task(learner, side, scenario, [whole[int(i)]], index))
         return batch, tasks
 
     def _adapted_task(self, learner: MetaPOCALearner, runner, scenario: str,
-                      support: list) -> Task:
+                      support: list, index: int) -> Task:
         """The inner update on ``support`` (theta'_i, delta_i), then the query batch sampled
-        by theta'_i on ``runner`` (set to ``scenario``) from fresh episodes."""
+        by theta'_i on ``runner`` (set to ``scenario``) from fresh episodes; task ``index``'s
+        own random streams."""
         cfg = self.config
-        with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
-            delta, adapted, _ = learner.adapt(support, self._timesteps(), cfg.inner_updates,
-                                              adam=cfg.inner_adam, lr_scale=cfg.inner_lr)
-        query = self._sample(runner, adapted, cfg.query_steps)
+        with self._task_streams(ADAPT_PHASE, index):
+            with self.metrics.log_time((TIMERS, LEARNER_UPDATE_TIMER)):
+                delta, adapted, _ = learner.adapt(support, self._timesteps(),
+                                                  cfg.inner_updates, adam=cfg.inner_adam,
+                                                  lr_scale=cfg.inner_lr)
+            query = self._sample(runner, adapted, cfg.query_steps)
         return Task(scenario, support, query, delta)
+
+    def _task_streams(self, phase: int, index: int = 0):
+        """``own_random_streams`` of this run, meta-iteration, phase and task."""
+        return own_random_streams(self.config.seed or 0, self.iteration, phase, index)
 
     def _query_runner(self):
         """The one-env runner the ``shared`` layout samples queries on (built once; its own
         env seeds: worker index 1). RLlib's EnvRunner seeds the process's random, numpy
         and torch generators when built (seed + worker index, the next seed's main one);
-        they are put back, so a run's own stream goes on."""
+        inside ``_task_streams`` they come back as they were."""
         if self._side_runner is None:
             config = self.config.copy(copy_frozen=False)
             config.num_envs_per_env_runner = 1
-            states = random.getstate(), np.random.get_state(), torch.get_rng_state()
-            self._side_runner = type(self.env_runner)(config=config, worker_index=1,
-                                                      num_workers=1)
-            random.setstate(states[0])
-            np.random.set_state(states[1])
-            torch.set_rng_state(states[2])
+            with self._task_streams(SIDE_RUNNER_PHASE):
+                self._side_runner = type(self.env_runner)(config=config, worker_index=1,
+                                                          num_workers=1)
         return self._side_runner
 
     @override(POCA)
@@ -286,7 +296,9 @@ class MetaPOCA(POCA):
         connectors extend them in place)."""
         timesteps = self._timesteps()
         if self.config.outer_rule == "reptile":
-            deltas = [learner.adapt(t.query, timesteps, 1, start=t.delta)[0] for t in tasks]
+            with self._task_streams(MAML_TERM_PHASE):
+                deltas = [learner.adapt(t.query, timesteps, 1, start=t.delta)[0]
+                          for t in tasks]
             learner.reptile_step(deltas, self.config.reptile_lr)
             return []
         kwargs = learner.update_kwargs(timesteps)
@@ -301,15 +313,16 @@ class MetaPOCA(POCA):
         results = [learner.update(episodes=at_theta, **kwargs)]
         if rule == "multitask" or self.config.maml_weight == 0:
             return results
-        if self.config.maml_step == "mean":
-            with learner.lr_scaled(self.config.maml_weight):
-                results.append(learner.mean_shifted_update(
-                    [(t.query, t.delta) for t in tasks], **kwargs))
-            return results
-        for task in tasks:  # the critic learns at theta only, where the tasks are mixed
-            with (learner.shifted(task.delta), learner.lr_scaled(self.config.maml_weight),
-                  learner.critic_frozen()):
-                results.append(learner.update(episodes=task.query, **kwargs))
+        with self._task_streams(MAML_TERM_PHASE):
+            if self.config.maml_step == "mean":
+                with learner.lr_scaled(self.config.maml_weight):
+                    results.append(learner.mean_shifted_update(
+                        [(t.query, t.delta) for t in tasks], **kwargs))
+                return results
+            for task in tasks:  # the critic learns at theta only, where tasks are mixed
+                with (learner.shifted(task.delta),
+                      learner.lr_scaled(self.config.maml_weight), learner.critic_frozen()):
+                    results.append(learner.update(episodes=task.query, **kwargs))
         return results
 
     def _sample(self, runner, actors: dict[str, dict[str, torch.Tensor]], steps: int) -> list:
