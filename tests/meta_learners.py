@@ -51,8 +51,9 @@ def outer_update(config, learner, tasks) -> None:
 
     from rl_scan.algorithms.maml.meta_poca import MetaPOCA
 
-    MetaPOCA._outer_update(SimpleNamespace(config=config, _timesteps=dict), learner,
-                           [e for t in tasks for e in t.support], tasks)
+    algo = SimpleNamespace(config=config, _timesteps=dict, iteration=0)
+    algo._task_streams = lambda *key: MetaPOCA._task_streams(algo, *key)
+    MetaPOCA._outer_update(algo, learner, [e for t in tasks for e in t.support], tasks)
 
 
 def make_tasks(learner, runner, scenarios=("train:0", "train:1"), adapted_query=False) -> list:

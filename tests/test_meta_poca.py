@@ -25,6 +25,8 @@ from meta_learners import (
 from ray.rllib.utils.metrics.metrics_logger import MetricsLogger
 
 from rl_scan.algorithms.maml import meta_poca_config
+from rl_scan.algorithms.maml.meta_poca import MAML_TERM_PHASE
+from rl_scan.algorithms.maml.random_streams import own_random_streams
 from rl_scan.algorithms.poca.modules import CRITIC_ID
 from rl_scan.config import ConfigError
 from rl_scan.results import EV_VALUE, META_TERM_RESULTS
@@ -190,10 +192,9 @@ def test_reptile_moves_theta_by_the_mean_task_delta():
     config, runner, learner = meta_setup(outer="reptile", reptile_lr=0.5)
     theta = state_copy(learner)
     tasks = make_tasks(learner, runner)
-    seeded()
-    further = [learner.adapt(t.query, {}, 1, start=t.delta)[0] for t in tasks]
+    with own_random_streams(config.seed, 0, MAML_TERM_PHASE, 0):  # the outer update's
+        further = [learner.adapt(t.query, {}, 1, start=t.delta)[0] for t in tasks]
 
-    seeded()
     outer_update(config, learner, tasks)
     for key, t in state_copy(learner).items():
         expected = theta[key] + 0.5 * (further[0][key] + further[1][key]) / 2
@@ -224,11 +225,12 @@ def test_the_update_at_theta_learns_every_batch_for_multitask_and_maml_dr(outer,
     critic_adam = copy.deepcopy(plain._named_optimizers[f"{CRITIC_ID}_default_optimizer"]
                                 .state_dict())
     if outer == "maml_dr" and weight > 0:
-        for task, query in zip(tasks, queries):
-            for optimizer in plain._named_optimizers.values():
-                optimizer.param_groups[0]["lr"] = config.lr * weight  # RLlib resets it after
-            with plain.shifted(task.delta), plain.critic_frozen():
-                plain.update(episodes=query, **plain.update_kwargs({}))
+        with own_random_streams(config.seed, 0, MAML_TERM_PHASE, 0):  # the term's streams
+            for task, query in zip(tasks, queries):
+                for optimizer in plain._named_optimizers.values():
+                    optimizer.param_groups[0]["lr"] = config.lr * weight  # RLlib resets it
+                with plain.shifted(task.delta), plain.critic_frozen():
+                    plain.update(episodes=query, **plain.update_kwargs({}))
     reached = plain.float_state()
     for key, t in learner.float_state().items():
         torch.testing.assert_close(t, reached[key], rtol=1e-5, atol=1e-6)
