@@ -338,14 +338,22 @@ def git_commit() -> str:
         return "unknown"
 
 
+RECORDED_PACKAGES = ("rl_scan", "ray", "torch", "gymnasium", "numpy", "numba", "llvmlite",
+                     "trimesh", "scipy")
+"""Packages whose versions a run folder records: each can change a seeded run's numbers
+(numba and llvmlite compile the raycasts, trimesh builds the objects' meshes)."""
+
+
 def _versions() -> dict[str, str]:
-    import gymnasium
-    import numpy
-    import ray
-    import torch
+    from importlib.metadata import PackageNotFoundError, version
 
-    import rl_scan
+    def installed(name: str) -> str:
+        try:
+            return version(name.replace("_", "-"))
+        except PackageNotFoundError:
+            return "not installed"
 
-    mods = {"rl_scan": rl_scan, "ray": ray, "torch": torch, "gymnasium": gymnasium,
-            "numpy": numpy}
-    return {name: str(mod.__version__) for name, mod in mods.items()}
+    found = {name: installed(name) for name in RECORDED_PACKAGES}
+    import torch  # its metadata version lacks the build tag (+cpu) that tells builds apart
+
+    return {**found, "torch": str(torch.__version__)}
