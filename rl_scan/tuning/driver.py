@@ -353,7 +353,4 @@ def _versions() -> dict[str, str]:
         except PackageNotFoundError:
             return "not installed"
 
-    found = {name: installed(name) for name in RECORDED_PACKAGES}
-    import torch  # its metadata version lacks the build tag (+cpu) that tells builds apart
-
-    return {**found, "torch": str(torch.__version__)}
+    return {name: installed(name) for name in RECORDED_PACKAGES}
