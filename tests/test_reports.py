@@ -286,10 +286,17 @@ def test_a_hetero_map_alone_makes_a_report_with_its_heatmap_and_winning_region(t
 
 def test_each_paper_claim_gets_the_verdict_its_ci_implies(tmp_path):
     from rl_scan.reports.claims import REPRODUCED, REVERSED, TOO_FEW, UNDECIDED, verdict
+    from rl_scan.reports.stats import fewest_runs_per_task, probability_of_improvement_ci
 
     assert [verdict(ci) for ci in ((0.51, 0.9), (0.1, 0.49), (0.2, 0.8), (0.5, 0.9))] == [
         REPRODUCED, REVERSED, UNDECIDED, UNDECIDED]
     assert verdict((0.0, 0.0), runs=2) == TOO_FEW  # 1 or 2 runs: a degenerate CI
+    # 5 scenes x 1 seed: 5 runs a side, but one a task; the stratified CI collapses
+    x, y, scenes = [0.9, 0.8, 0.7, 0.6, 0.5], [0.85, 0.9, 0.6, 0.5, 0.4], list(range(5))
+    assert probability_of_improvement_ci(x, y, scenes, scenes) == (0.8, 0.8)  # 4 of 5 wins
+    assert fewest_runs_per_task(x, y, scenes, scenes) == 1
+    assert fewest_runs_per_task(x * 3, y * 3, scenes * 3, scenes * 3) == 3
+    assert fewest_runs_per_task(x * 3, y, scenes * 3, scenes) == 1
     # the paper: 2 + 2 beat 4 quads; here 4 quads win every pair (P = 0, CI [0, 0])
     _study(tmp_path / "results", {"2,2": [0.6, 0.7, 0.65], "0,4": [0.9, 0.95, 0.92],
                                   "4,0": [0.5, 0.6, 0.7]}, kind="team")

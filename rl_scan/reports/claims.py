@@ -13,6 +13,7 @@ import math
 from typing import Any
 
 from rl_scan.reports.stats import (
+    fewest_runs_per_task,
     mean_std,
     probability_of_improvement,
     probability_of_improvement_ci,
@@ -21,14 +22,15 @@ from rl_scan.studies import ReportSpec
 
 REPRODUCED, REVERSED, UNDECIDED = "reproduced", "reversed", "not reproduced"
 MIN_RUNS = 3
-"""Runs each side needs for a verdict: with one or two, the bootstrap CI of P(X > Y)
-collapses onto the few pairs there are (one run each gives [0, 0] or [1, 1])."""
-TOO_FEW = f"none (fewer than {MIN_RUNS} runs a side)"
+"""Runs each side needs on every task for a verdict: the bootstrap resamples within tasks,
+so with one or two a task its CI of P(X > Y) collapses onto the few pairs there are (one
+run each gives the point value as its CI, whatever the number of tasks)."""
+TOO_FEW = f"none (fewer than {MIN_RUNS} runs a side per task)"
 VERDICT_RULE = (
     "A claim of the paper that X beats Y is **reproduced** if the 95 % CI of P(X > Y) "
     "(final coverage) lies above 0.5, **reversed** if it lies below 0.5, and **not "
     f"reproduced** if it contains 0.5 (these runs do not separate X from Y); with fewer "
-    f"than {MIN_RUNS} runs of X or of Y there is no verdict.")
+    f"than {MIN_RUNS} runs of X or of Y on a task (seeds per scene) there is no verdict.")
 SCAN_SPEED_RULE = (
     "Scan speed: the steps an episode of a run's final evaluation takes to reach 95 % "
     "coverage, an episode that never does counted as its whole length (censored), mean ± "
@@ -38,7 +40,8 @@ SCAN_SPEED_RULE = (
 
 
 def verdict(ci: tuple[float, float], runs: int = MIN_RUNS) -> str:
-    """The verdict on "X beats Y" from the CI of P(X > Y); ``runs``: the smaller side."""
+    """The verdict on "X beats Y" from the CI of P(X > Y); ``runs``: the fewest runs a side
+    has on a task (``fewest_runs_per_task``)."""
     if runs < MIN_RUNS:
         return TOO_FEW
     lo, hi = ci
@@ -61,7 +64,7 @@ def improvement_rows(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[dict[
             ci = probability_of_improvement_ci(xa, xb, ta, tb)
             claim = spec.claims.get(f"{a} > {b}")
             out.append({"x": a, "y": b, "p": p, "ci": ci, "claim": claim,
-                        "verdict": verdict(ci, min(len(xa), len(xb))) if claim else None})
+                        "verdict": verdict(ci, fewest_runs_per_task(xa, xb, ta, tb)) if claim else None})
     return out
 
 

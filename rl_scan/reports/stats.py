@@ -79,6 +79,14 @@ def probability_of_improvement(x, y, tasks_x=None, tasks_y=None) -> float:
     return float(np.mean([_pairwise_improvement(a, b) for a, b in pairs]))
 
 
+def fewest_runs_per_task(x, y, tasks_x=None, tasks_y=None) -> int:
+    """The fewest runs X or Y has on a task both ran (0 if none): the stratified bootstrap
+    resamples within tasks, so one run a task (e.g. 5 scenes x 1 seed) gives a collapsed
+    CI however many tasks there are."""
+    pairs = _tasks(x, y, tasks_x, tasks_y)
+    return min((min(len(a), len(b)) for a, b in pairs), default=0)
+
+
 def probability_of_improvement_ci(x, y, tasks_x=None, tasks_y=None, *, reps: int = 2000,
                                   level: float = 0.95, seed: int = 0) -> tuple[float, float]:
     """Stratified bootstrap CI of P(X > Y): each task's runs of X and of Y are resampled
