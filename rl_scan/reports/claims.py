@@ -63,8 +63,9 @@ def improvement_rows(spec: ReportSpec, rows: list[dict[str, Any]]) -> list[dict[
                 continue
             ci = probability_of_improvement_ci(xa, xb, ta, tb)
             claim = spec.claims.get(f"{a} > {b}")
+            runs = fewest_runs_per_task(xa, xb, ta, tb)
             out.append({"x": a, "y": b, "p": p, "ci": ci, "claim": claim,
-                        "verdict": verdict(ci, fewest_runs_per_task(xa, xb, ta, tb)) if claim else None})
+                        "verdict": verdict(ci, runs) if claim else None})
     return out
 
 
