@@ -285,8 +285,16 @@ def test_a_hetero_map_alone_makes_a_report_with_its_heatmap_and_winning_region(t
 
 
 def test_each_paper_claim_gets_the_verdict_its_ci_implies(tmp_path):
-    from rl_scan.reports.claims import REPRODUCED, REVERSED, TOO_FEW, UNDECIDED, verdict
+    from rl_scan.reports.claims import (
+        REPRODUCED,
+        REVERSED,
+        TOO_FEW,
+        UNDECIDED,
+        improvement_rows,
+        verdict,
+    )
     from rl_scan.reports.stats import fewest_runs_per_task, probability_of_improvement_ci
+    from rl_scan.studies import ReportSpec
 
     assert [verdict(ci) for ci in ((0.51, 0.9), (0.1, 0.49), (0.2, 0.8), (0.5, 0.9))] == [
         REPRODUCED, REVERSED, UNDECIDED, UNDECIDED]
@@ -297,6 +305,12 @@ def test_each_paper_claim_gets_the_verdict_its_ci_implies(tmp_path):
     assert fewest_runs_per_task(x, y, scenes, scenes) == 1
     assert fewest_runs_per_task(x * 3, y * 3, scenes * 3, scenes * 3) == 3
     assert fewest_runs_per_task(x * 3, y, scenes * 3, scenes) == 1
+    spec = ReportSpec(comparisons=(("x", "y"),), claims={"x > y": "x beats y"})
+    rows = [{"condition": "x", "finals": [v + 0.5 for v in x], "tasks": scenes},
+            {"condition": "y", "finals": y, "tasks": scenes}]
+    assert improvement_rows(spec, rows)[0]["verdict"] == TOO_FEW  # CI (1, 1), 5 runs a side
+    rows = [{**r, "finals": r["finals"] * 3, "tasks": scenes * 3} for r in rows]
+    assert improvement_rows(spec, rows)[0]["verdict"] == REPRODUCED
     # the paper: 2 + 2 beat 4 quads; here 4 quads win every pair (P = 0, CI [0, 0])
     _study(tmp_path / "results", {"2,2": [0.6, 0.7, 0.65], "0,4": [0.9, 0.95, 0.92],
                                   "4,0": [0.5, 0.6, 0.7]}, kind="team")
