@@ -77,3 +77,5 @@ def test_stratified_bootstrap_keeps_strata_apart():
     # each stratum is constant, so every resample has the same runs: a zero-width CI
     lo, hi = stratified_bootstrap_ci([[0.2, 0.2], [0.9, 0.9]], statistic=lambda x: x.mean())
     assert lo == pytest.approx(0.55) and hi == pytest.approx(0.55)
+    # one run a stratum: nothing to resample, so no CI (not a zero-width one)
+    assert all(math.isnan(v) for v in stratified_bootstrap_ci([[0.2], [0.9], [0.5, 0.6]]))

@@ -31,9 +31,11 @@ def iqm(scores) -> float:
 
 def stratified_bootstrap_ci(strata: list, statistic=iqm, *, reps: int = 2000,
                             level: float = 0.95, seed: int = 0) -> tuple[float, float]:
-    """CI of ``statistic`` over all runs, resampling runs within each stratum (task)."""
+    """CI of ``statistic`` over all runs, resampling runs within each stratum (task); none
+    (nan) if a stratum has a single run, whose resamples are all alike (5 scenes x 1 seed
+    would give a zero-width CI that only says nothing was resampled)."""
     strata = [np.asarray(s, dtype=float) for s in strata if len(s)]
-    if not strata:
+    if not strata or min(len(s) for s in strata) < 2:
         return math.nan, math.nan
     rng = np.random.default_rng(seed)
     values = np.empty(reps)
